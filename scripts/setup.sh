@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# One idempotent set-up for a fresh Debian machine, used by both README commands and by CI.
+# Each step checks first and does nothing when its result is already in place, so a second run
+# in a row does no work (it ends with "setup: nothing to do").
+#
+#   1. Debian packages: libllvm19 (Mitsuba's llvm_ad_rgb; the system LLVM 15 aborts), libusb-1.0-0
+#      (pyusb's backend for VIVE USB access).
+#   2. A virtual environment in .venv (override with DUALHUMAN_VENV).
+#   3. A CPU PyTorch when none is present (torch==2.13.0 lies on this kind of machine's disk).
+#   4. This package, editable, with its test extras (re-run when pyproject.toml changes).
+#   5. A warm anny cache (~790 MB under ~/.cache/anny, ~2-3 minutes once per machine).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${DUALHUMAN_VENV:-.venv}
+did=()
+
+apt_pkgs=(libllvm19 libusb-1.0-0)
+missing=()
+for p in "${apt_pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo"
+  echo "setup: installing Debian packages: ${missing[*]}"
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq -o Dpkg::Use-Pty=0 "${missing[@]}" >/dev/null
+  did+=("apt")
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "setup: creating virtual environment $VENV"
+  python3 -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+  did+=("venv")
+fi
+PY="$VENV/bin/python"
+
+if ! "$PY" -c "import torch" >/dev/null 2>&1; then
+  echo "setup: installing a CPU PyTorch (torch==2.13.0)"
+  "$PY" -m pip install -q torch==2.13.0
+  did+=("torch")
+fi
+
+stamp="$VENV/.dualhuman-install-stamp"
+want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import dualhuman_builder, cli" >/dev/null 2>&1; then
+  echo "setup: installing dualhuman-builder with its test extras"
+  "$PY" -m pip install -q -e '.[test]'
+  echo "$want" > "$stamp"
+  did+=("package")
+fi
+
+if ! "$VENV/bin/dualhuman" body warm --check >/dev/null 2>&1; then
+  echo "setup: building the anny body-model cache (once per machine, a few minutes)"
+  "$VENV/bin/dualhuman" body warm
+  did+=("anny-cache")
+fi
+
+if [ ${#did[@]} -eq 0 ]; then
+  echo "setup: nothing to do"
+else
+  echo "setup: done (${did[*]})"
+fi
