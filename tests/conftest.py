@@ -1,0 +1,25 @@
+"""Shared fixtures: the body model is built once per test session (anny's cache makes that < 1 s)."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def body_model():
+    from dualhuman_builder.body.model import get_body_model
+
+    return get_body_model()
+
+
+@pytest.fixture
+def ws(tmp_path):
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.init(tmp_path / "ws") as w:
+        yield w
+
+
+def snapshot(folder):
+    """{relative path: bytes} of every file under ``folder``, to prove a command changed nothing."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
