@@ -71,20 +71,10 @@ def status(workspace: Path, verify: bool, as_json: bool):
     each run's parameters hash. Read-only: works on a workspace you cannot write to."""
     from dualhuman_builder.console import status_table
     from dualhuman_builder.workspace import STAGES, Workspace
-    from dualhuman_builder.workspace.stages import artifact_problems
 
     with Workspace.open(workspace, readonly=True) as ws:
         rows = ws.status_rows()
-        problems = []
-        if verify:
-            for take in ws.takes():
-                problems += [f"take {take}: {p}" for p in ws.verify_take_files(take)]
-                for seq in [None, *[s.name for s in ws.sequences(take)]]:
-                    for stage in STAGES:
-                        rec = ws.stage_record(stage, take, seq)
-                        if rec and rec["status"] == "done":
-                            where = f"{take}/{seq}" if seq else take
-                            problems += [f"{where} {stage}: {p}" for p in artifact_problems(ws, rec, verify=True)]
+        problems = ws.verify() if verify else []
         if as_json:
             click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))
         else:

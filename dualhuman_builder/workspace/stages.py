@@ -82,7 +82,7 @@ def _row(ws, stage: str, take: str, sequence: str | None):
 
 
 def _record(row) -> dict[str, Any]:
-    rec = dict(row)
+    rec = {k: row[k] for k in row.keys() if k not in ("take_name", "seq_name")}
     rec["artifacts"] = json.loads(rec.pop("artifacts_json"))
     rec["params"] = json.loads(rec.pop("params_json"))
     rec["summary"] = json.loads(rec.pop("summary_json"))

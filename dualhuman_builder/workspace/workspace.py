@@ -355,6 +355,23 @@ class Workspace:
                                  path=self.root, fix=f"run the {stage} stage first")  # fmt: skip
         return {name: self.root / a["path"] for name, a in rec["artifacts"].items()}
 
+    def verify(self) -> list[str]:
+        """Re-hash every take source file and every completed stage's artifacts against the
+        catalog; returns the problems found (empty when everything matches)."""
+        from dualhuman_builder.workspace.stages import _record, artifact_problems
+
+        problems = []
+        for take in self.takes():
+            problems += [f"take {take}: {p}" for p in self.verify_take_files(take)]
+        rows = self.conn.execute(
+            "SELECT r.*, t.name AS take_name, s.name AS seq_name FROM stage_runs r JOIN takes t ON t.id = r.take_id "
+            "LEFT JOIN sequences s ON s.id = r.sequence_id WHERE r.status = 'done' ORDER BY t.name, s.name, r.stage"
+        ).fetchall()
+        for r in rows:
+            where = f"{r['take_name']}/{r['seq_name']}" if r["seq_name"] else r["take_name"]
+            problems += [f"{where} {r['stage']}: {p}" for p in artifact_problems(self, _record(r), verify=True)]
+        return problems
+
     def status_rows(self) -> list[dict[str, Any]]:
         """One row per take and per sequence: ``{"take", "sequence", "stages": {stage: info}}``."""
         from dualhuman_builder.workspace.stages import describe_run
