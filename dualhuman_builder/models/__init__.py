@@ -1,0 +1,3 @@
+"""Trainers that consume the exported dataset: the reaction prior (motion VAE + invertible network)
+and the two-person pose estimator of the Dual-Human paper, with their metrics. Arrive with later
+issues."""
