@@ -326,20 +326,29 @@ class InteractionSequence:
     def fps(self) -> float:
         return self.actors[0].fps
 
-    def save(self, path: str | Path) -> Path:
-        arrays = {**self.actors[0]._arrays("a0."), **self.actors[1]._arrays("a1.")}
-        meta = {"actors": [a._meta() for a in self.actors], "take": self.take, "frame_range": list(self.frame_range),
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """The arrays of both tracks, keyed ``{prefix}a0.pose`` etc. (for containers that embed it)."""
+        return {**self.actors[0]._arrays(f"{prefix}a0."), **self.actors[1]._arrays(f"{prefix}a1.")}
+
+    def to_meta(self) -> dict[str, Any]:
+        return {"actors": [a._meta() for a in self.actors], "take": self.take, "frame_range": list(self.frame_range),
                 "labels": list(self.labels), "text": list(self.text), "meta": self.meta}  # fmt: skip
-        return save_npz(path, "InteractionSequence", INTERACTION_SEQUENCE_VERSION, arrays, meta)
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, meta: dict, prefix: str = "") -> "InteractionSequence":
+        actors = tuple(BodyTrack._from(arrays, meta["actors"][i], f"{prefix}a{i}.") for i in (0, 1))
+        return cls(actors=actors, take=meta.get("take", ""), frame_range=tuple(meta["frame_range"]),
+                   labels=meta.get("labels", ()), text=meta.get("text", ()), meta=meta.get("meta", {}))  # fmt: skip
+
+    def save(self, path: str | Path) -> Path:
+        return save_npz(path, "InteractionSequence", INTERACTION_SEQUENCE_VERSION, self.to_arrays(), self.to_meta())
 
     @classmethod
     def load(cls, path: str | Path) -> "InteractionSequence":
         required = tuple(f"a{i}.{n}" for i in (0, 1) for n in _BODY_ARRAYS)
         arrays, meta = load_npz(path, "InteractionSequence", INTERACTION_SEQUENCE_VERSION, required=required)
         try:
-            actors = tuple(BodyTrack._from(arrays, meta["actors"][i], f"a{i}.") for i in (0, 1))
-            return cls(actors=actors, take=meta.get("take", ""), frame_range=tuple(meta["frame_range"]),
-                       labels=meta.get("labels", ()), text=meta.get("text", ()), meta=meta.get("meta", {}))  # fmt: skip
+            return cls.from_arrays(arrays, meta)
         except (KeyError, IndexError, ValueError) as e:
             raise FormatError(f"inconsistent InteractionSequence: {e}", path=path) from e
 
