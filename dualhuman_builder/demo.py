@@ -4,18 +4,24 @@ What it does now (each step goes through the workspace, so a second run is a no-
 
 1. creates (or reuses) the workspace and registers the simulated rig ``rigs/sim.toml``;
 2. registers two actors of different statures and solves their anny shapes from stature;
-3. registers take ``DEMO`` with sequence ``greeting`` and runs the ``scene`` stage: both bodies
-   stand 1.2 m apart facing each other and raise their arms from anny's rest A-pose to a T-pose;
-   it writes the :class:`~dualhuman_builder.tracks.InteractionSequence`, meshes of the first and
-   last frames (PLY, and a coloured GLB to open in any glTF viewer) and a Mitsuba render
-   ``preview.png``.
+3. registers take ``DEMO`` with sequence ``handshake`` and runs the ``scene`` stage: a generated
+   ground-truth handshake of the two actors (:mod:`dualhuman_builder.sim.scenes`, seed 3); it
+   writes the scene (``scene.npz``: sequence, per-vertex distances to the partner, phases), the
+   :class:`~dualhuman_builder.tracks.InteractionSequence` alone, meshes of the first frame and
+   of the handshake (PLY, and a coloured GLB to open in any glTF viewer), a Mitsuba still
+   ``preview.png`` of the handshake and ``strip.png``, six moments side by side with the
+   ground-truth contacts painted yellow;
+4. runs the ``devices`` stage: both suits, twelve trackers and two IMUs simulated from the scene
+   (:mod:`dualhuman_builder.sim.studio`), summarised in ``devices.json`` (samples per stream,
+   rates, the realised clock offsets, drifts and tracker losses).
 
-Later stages (simulated devices, capture, sync, fit, contacts, render, export) join here as they
-land; the demo always runs the whole pipeline that exists.
+Later stages (capture, sync, fit, contacts, render, export) join here as they land; the demo
+always runs the whole pipeline that exists.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +30,8 @@ from typing import Callable
 import numpy as np
 
 DEMO_TAKE = "DEMO"
-DEMO_SEQUENCE = "greeting"
+DEMO_SEQUENCE = "handshake"
+DEMO_SCENE = {"type": "handshake", "seed": 3, "fps": 30.0}
 DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
 
@@ -87,37 +94,91 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         if DEMO_TAKE not in ws.takes():
             ws.add_take(DEMO_TAKE, rig="sim", actors=[a[0] for a in DEMO_ACTORS], meta={"simulated": True})
         if DEMO_SEQUENCE not in [s.name for s in ws.sequences(DEMO_TAKE)]:
-            ws.add_sequence(DEMO_TAKE, DEMO_SEQUENCE, 0, 60, labels=("demo",))
+            from dualhuman_builder.sim.scenes import NATURAL_DURATION
+
+            frames = int(round(NATURAL_DURATION[DEMO_SCENE["type"]] * DEMO_SCENE["fps"]))
+            ws.add_sequence(DEMO_TAKE, DEMO_SEQUENCE, 0, frames, labels=(DEMO_SCENE["type"],))
 
         def scene(out):
-            seq = greeting_sequence(model, shapes)
-            seq.save(out.path("sequence.npz"))
-            return _write_scene_views(model, seq, out)
+            from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
-        res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE,
-                           params={"actors": DEMO_ACTORS, "shapes": shapes, "frames": 60, "fps": 30.0})  # fmt: skip
-        (result.up_to_date if res.skipped else result.ran).append("scene")
-        log(f"stage scene: {'up to date' if res.skipped else 'done'}")
-        result.outputs.update(res.artifacts)
+            log(f"generating a {DEMO_SCENE['type']} (seed {DEMO_SCENE['seed']})...")
+            sc = make_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in DEMO_ACTORS), **DEMO_SCENE),
+                            model=model, log=log)  # fmt: skip
+            sc.save(out.path("scene.npz"))
+            sc.sequence.save(out.path("sequence.npz"))
+            log(f"scene quality: penetration {1000 * sc.stats['max_penetration_m']:.1f} mm, contact on "
+                f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
+            return {**_write_scene_views(model, sc, out), "quality": sc.stats}
+
+        params = {"actors": DEMO_ACTORS, "shapes": shapes, **DEMO_SCENE}
+        res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params=params)
+        _note(result, log, "scene", res)
+
+        def devices(out):
+            from dualhuman_builder.sim.scenes import Scene
+            from dualhuman_builder.sim.studio import simulate_studio
+
+            sc = Scene.load(ws.artifacts("scene", DEMO_TAKE, DEMO_SEQUENCE)["scene.npz"])
+            studio = simulate_studio(sc.sequence, seed=DEMO_SCENE["seed"], progress=log)
+            summary = studio_summary(studio)
+            with open(out.path("devices.json"), "w") as f:
+                json.dump(summary, f, indent=2)
+            return {"samples": sum(summary["samples"].values())}
+
+        res = ws.run_stage("devices", devices, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params={"seed": DEMO_SCENE["seed"]},
+                           depends_on=[("scene", DEMO_SEQUENCE)])  # fmt: skip
+        _note(result, log, "devices", res)
     result.seconds = time.perf_counter() - t0
     return result
 
 
-def _write_scene_views(model, seq, out) -> dict:
-    """PLY meshes of the first and last frames, a coloured GLB of the last, and preview.png."""
+def _note(result: DemoResult, log, stage: str, res) -> None:
+    (result.up_to_date if res.skipped else result.ran).append(stage)
+    log(f"stage {stage}: {'up to date' if res.skipped else 'done'}")
+    result.outputs.update(res.artifacts)
+
+
+def studio_summary(studio) -> dict:
+    """What a person wants to know about a simulated take: samples per stream, rates, and the
+    errors the simulators realised (clock offsets, suit drift, tracker losses)."""
+    suits = {f"suit/{s.character}": {"rate_hz": s.rate_hz, "heading_drift_deg_per_min": round(float(np.degrees(s.heading_drift_rate_rad_s) * 60), 3),
+                                     "root_drift_at_end_m": np.round(s.root_drift[-1], 4).tolist()}
+             for s in studio.suits}  # fmt: skip
+    trackers = {}
+    for tr in studio.trackers:
+        for i, serial in enumerate(tr.serials):
+            trackers[f"vive/{serial}"] = {"segment": tr.segments[i], "rate_hz": tr.rate_hz,
+                                          "losses": int((tr.loss_tracker == i).sum()),
+                                          "invalid_samples": int((~tr.valid[i]).sum())}  # fmt: skip
+    clocks = {name: {"offset_s": c.offset_s, "drift_ppm": c.drift_ppm}
+              for name, c in [("suits", studio.suits[0].clock), ("trackers", studio.trackers[0].clock),
+                              *((f"imu/{k}", v.clock) for k, v in studio.imus.items())]}  # fmt: skip
+    return {"samples": studio.counts(), "suits": suits, "trackers": trackers, "clocks": clocks,
+            "imus": {k: {"segment": v.segment, "rate_hz": v.rate_hz} for k, v in studio.imus.items()}}  # fmt: skip
+
+
+def _write_scene_views(model, sc, out) -> dict:
+    """PLY meshes of the first frame and of the middle of the contact, a coloured GLB of the
+    latter, the still ``preview.png`` and the contact strip ``strip.png``."""
     import trimesh
 
-    from dualhuman_builder.render.preview import render_preview
+    from dualhuman_builder.render.preview import render_preview, render_strip
 
+    seq = sc.sequence
     faces = model.faces.cpu().numpy()
-    last = []
+    a, b = sc.contact_phases[0]
+    touch = min(int(round(0.5 * (a + b) * seq.fps)), seq.num_frames - 1)
+    shown = []
     for track, colour in zip(seq.actors, ACTOR_COLOURS):
         verts = track.vertices()
-        for tag, frame in (("first", 0), ("last", seq.num_frames - 1)):
+        for tag, frame in (("first", 0), ("contact", touch)):
             mesh = trimesh.Trimesh(verts[frame], faces, process=False)
             mesh.export(out.path(f"meshes/{track.actor}_{tag}.ply"))
         rgba = np.array([*[int(255 * c) for c in colour], 255], dtype=np.uint8)
-        last.append(trimesh.Trimesh(verts[-1], faces, vertex_colors=np.tile(rgba, (len(verts[-1]), 1)), process=False))
-    trimesh.Scene(last).export(out.path("preview.glb"))
-    info = render_preview([(m.vertices, faces, c) for m, c in zip(last, ACTOR_COLOURS)], out.path("preview.png"))
-    return {"preview_variant": info["variant"], "preview_seconds": round(info["seconds"], 3)}
+        shown.append(trimesh.Trimesh(verts[touch], faces, vertex_colors=np.tile(rgba, (len(verts[touch]), 1)), process=False))
+    trimesh.Scene(shown).export(out.path("preview.glb"))
+    info = render_preview([(m.vertices, faces, c) for m, c in zip(shown, ACTOR_COLOURS)], out.path("preview.png"))
+    strip = render_strip(seq, faces, out.path("strip.png"), frames=6, colours=ACTOR_COLOURS, highlight=sc.contact_labels())
+    return {"preview_variant": info["variant"], "preview_seconds": round(info["seconds"], 3),
+            "strip_seconds": round(strip["seconds"], 3), "contact_frame": touch}  # fmt: skip

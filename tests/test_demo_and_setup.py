@@ -1,12 +1,15 @@
 """The README's two commands: the idempotent set-up script and the demo."""
 
+import json
 import subprocess
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from dualhuman_builder.demo import DEMO_SEQUENCE, DEMO_TAKE, run_demo
+from dualhuman_builder.sim.scenes import Scene, contract_failures, describe_scene
 from dualhuman_builder.tracks import InteractionSequence
 from dualhuman_builder.workspace import Workspace
 
@@ -24,27 +27,36 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     ws_path = tmp_path / "demo"
     logs = []
     first = run_demo(ws_path, log=logs.append)
-    assert first.ran == ["scene"] and first.up_to_date == []
+    assert first.ran == ["scene", "devices"] and first.up_to_date == []
     out = first.outputs
-    assert set(out) == {"sequence.npz", "preview.png", "preview.glb", "meshes/sim-a_first.ply", "meshes/sim-a_last.ply",
-                        "meshes/sim-b_first.ply", "meshes/sim-b_last.ply"}  # fmt: skip
+    assert set(out) == {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
+                        *(f"meshes/{a}_{t}.ply" for a in ("sim-a", "sim-b") for t in ("first", "contact"))}  # fmt: skip
+    scene = Scene.load(out["scene.npz"])
     seq = InteractionSequence.load(out["sequence.npz"])
-    assert seq.num_frames == 60 and seq.take == DEMO_TAKE
+    assert seq.num_frames == 120 and [t.actor for t in seq.actors] == ["sim-a", "sim-b"]
+    assert scene.params.type == "handshake" and contract_failures(scene.stats) == []
     a, b = (t.vertices() for t in seq.actors)
     for v in (a, b):
-        assert abs(v[:, :, 1].min()) < 2e-3  # soles on the floor
-    statures = [v[0, :, 1].max() - v[0, :, 1].min() for v in (a, b)]
-    np.testing.assert_allclose(statures, [1.68, 1.82], atol=2e-3)
+        assert abs(v[:, :, 1].min()) < 0.02  # soles on the floor
+    np.testing.assert_allclose(describe_scene(scene)["data"]["statures_m"], [1.68, 1.82], atol=2e-3)
     # they face each other: actor a's nose points at b, and b's at a
     noses = [t.coco()[0, 0] - t.joints()[0, 0] for t in seq.actors]
     assert noses[0][2] > 0.05 and noses[1][2] < -0.05
-    assert np.linalg.norm(seq.actors[0].joints()[-1, 20] - seq.actors[0].joints()[-1, 16]) > 0.4  # arms out
+    # the hands meet: ground-truth contacts during the contact phase
+    labels = scene.contact_labels()
+    assert labels[0][scene.contact_phase_mask()].any(axis=1).all()
     img = np.asarray(Image.open(out["preview.png"]).convert("RGB"), dtype=float)
     assert img.shape == (320, 480, 3) and img.std() > 10  # a real picture, not a blank frame
+    strip = Image.open(out["strip.png"])
+    assert strip.size == (6 * 300, 360)
+    devices = json.loads(out["devices.json"].read_text())
+    assert devices["samples"]["suit/0"] == pytest.approx(240 * 4.0, rel=0.03)
+    assert len(devices["trackers"]) == 12 and devices["clocks"]["trackers"]["offset_s"] == 0.25
     with Workspace.open(ws_path) as ws:
-        assert ws.stage_record("scene", DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
+        for stage in ("scene", "devices"):
+            assert ws.stage_record(stage, DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
         assert [a.shape_source for a in ws.actors()] == ["stature", "stature"]
     mtimes = {p: p.stat().st_mtime_ns for p in out.values()}
     second = run_demo(ws_path, log=logs.append)
-    assert second.ran == [] and second.up_to_date == ["scene"]
+    assert second.ran == [] and second.up_to_date == ["scene", "devices"]
     assert {p: p.stat().st_mtime_ns for p in second.outputs.values()} == mtimes  # nothing rewritten

@@ -31,7 +31,7 @@ from dualhuman_builder.workspace.catalog import (
 )
 
 #: Pipeline stages in data-flow order (the columns of ``dualhuman status``).
-STAGES = ("scene", "capture", "sync", "fuse", "calibrate", "fit", "contacts", "render", "export")
+STAGES = ("scene", "devices", "capture", "sync", "fuse", "calibrate", "fit", "contacts", "render", "export")
 TAKE_LEVEL = "_take"
 
 
