@@ -69,13 +69,18 @@ def main() -> None:
         mesh.update(vb)
         mesh.query(va, 1.0)
 
+    def with_warp_band():
+        mesh.update(vb)
+        mesh.query(va, 0.05)
+
     def with_pair():
         pair(va, vb, 0.05)
 
-    t_igl, t_warp, t_pair = (median_seconds(fn, args.repeats) for fn in (with_igl, with_warp, with_pair))
+    t_igl, t_warp, t_band, t_pair = (median_seconds(fn, args.repeats) for fn in (with_igl, with_warp, with_warp_band, with_pair))
     print(f"signed distances, {model.num_vertices} vertices of A to B (handshake frame {f}), median of {args.repeats}:")
     print(f"  libigl signed_distance      {1000 * t_igl:8.1f} ms   1.0x")
-    print(f"  warp BVH refit + query      {1000 * t_warp:8.1f} ms   {t_igl / t_warp:.1f}x")
+    print(f"  warp BVH refit + query, 1 m band  {1000 * t_warp:8.1f} ms   {t_igl / t_warp:.1f}x")
+    print(f"  warp BVH refit + query, 5 cm band {1000 * t_band:8.1f} ms   {t_igl / t_band:.1f}x")
     print(f"  PairDistance both ways, 5 cm band + broad phase {1000 * t_pair:6.1f} ms   {t_igl / t_pair:.1f}x (of one direction by libigl)")
     print(f"scene generation at {args.fps:g} fps, seed 0 (one run each):")
     for kind, (seconds, frames) in timings.items():
