@@ -446,6 +446,8 @@ def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplica
         faults_text = ", ".join(f"{k} {v}" for k, v in r.faults.counts().items() if v and k != "sent") or "no faults"
         console.print(f"{name}: sent {r.sent} packets ({r.bytes_sent} bytes) in {r.elapsed_s:.2f} s; {faults_text}",
                       highlight=False)  # fmt: skip
+    if play.pty is not None and play.pty.dropped_bytes:
+        console.print(f"xbus: {play.pty.dropped_bytes} bytes dropped: nobody read {play.pty_path} fast enough", highlight=False)
 
 
 if __name__ == "__main__":

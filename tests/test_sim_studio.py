@@ -174,3 +174,27 @@ def test_mvn_header_layout_read_independently(source):
         seg_id = struct.unpack(">i7f", d[24:56])[0]
         assert 1 <= seg_id <= 23
     assert items == 23 and math.isfinite(frame.positions.sum())
+
+
+def test_pty_drops_what_nobody_reads_when_asked():
+    import os
+
+    from dualhuman_builder.sim.devices import PtyMaster
+
+    with PtyMaster(drop_when_full=True) as pty:
+        data = bytes(range(256)) * 800  # 200 KiB, more than a pty buffers
+        assert pty.write(data) == len(data)  # returns at once instead of waiting for a reader
+        assert 0 < pty.dropped_bytes < len(data)
+        fd = os.open(pty.slave_path, os.O_RDONLY | os.O_NONBLOCK)
+        got = b""
+        try:
+            while True:
+                got += os.read(fd, 65536)
+        except BlockingIOError:
+            pass
+        finally:
+            os.close(fd)
+        assert len(got) == len(data) - pty.dropped_bytes and data.startswith(got)
+    with PtyMaster(write_timeout=0.2) as pty:  # the default still refuses to lose bytes silently
+        with pytest.raises(TimeoutError, match="did not read"):
+            pty.write(bytes(200_000))

@@ -557,15 +557,20 @@ class PtyMaster:
     The line discipline is put in raw mode at once (no echo, no CR/LF translation, no XON/XOFF
     bytes eaten), and the slave stays open for the pty's lifetime so the master never sees a
     hang-up. ``read`` never blocks; ``write`` waits at most ``write_timeout`` seconds for a host
-    that does not read (then ``TimeoutError``).
+    that does not read (then ``TimeoutError``) — or, with ``drop_when_full``, drops at once what
+    the full pty buffer does not take, as a device streaming to a host that is not listening
+    does, counting it in :attr:`dropped_bytes` (a host that starts reading later sees a cut frame
+    first and must resynchronise).
     """
 
-    def __init__(self, write_timeout: float = 5.0):
+    def __init__(self, write_timeout: float = 5.0, drop_when_full: bool = False):
         self.fd, self._slave_fd = os.openpty()
         tty.setraw(self._slave_fd)
         self.slave_path = os.ttyname(self._slave_fd)
         os.set_blocking(self.fd, False)
         self.write_timeout = write_timeout
+        self.drop_when_full = drop_when_full
+        self.dropped_bytes = 0
 
     @property
     def in_waiting(self) -> int:
@@ -590,6 +595,9 @@ class PtyMaster:
                 n = os.write(self.fd, view)
                 view = view[n:]
             except BlockingIOError:
+                if self.drop_when_full:
+                    self.dropped_bytes += len(view)
+                    break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise TimeoutError(f"host did not read {self.slave_path} for {self.write_timeout} s") from None

@@ -8,8 +8,9 @@ recorder would see from a live studio:
   split), default ``127.0.0.1:9763``;
 * trackers: one bridge datagram per sample on one UDP address, default ``127.0.0.1:8051``;
 * the Xbus MTi: MTData2 frames on a serial port — ``"pty"`` opens a pseudo-terminal whose slave
-  path a host opens like a USB adapter (the simulated MTi answers configuration messages there),
-  anything else is a pyserial URL or device path;
+  path a host opens like a USB adapter (the simulated MTi answers configuration messages there;
+  what nobody reads is dropped and counted in ``pty.dropped_bytes``), anything else is a pyserial
+  URL or device path;
 * the CAN MTi: MTi-600 frames on a python-can bus ``"INTERFACE:CHANNEL"`` (``virtual:NAME`` is
   in-process only; ``socketcan:vcan0`` reaches other processes).
 
@@ -35,6 +36,7 @@ class StudioPlay:
 
     players: dict[str, Player] = field(default_factory=dict)
     pty_path: str | None = None
+    pty: PtyMaster | None = None
     _close: list = field(default_factory=list)
 
     def join(self, timeout: float | None = None) -> dict[str, PlayReport]:
@@ -95,8 +97,9 @@ def play_studio(studio: SimStudio, *, mvn: str | None = "127.0.0.1:9763", tracke
         imu_x, imu_c = studio.imus.get("mti-xbus"), studio.imus.get("mti-can")
         if xbus and imu_x is not None:
             if xbus == "pty":
-                port = PtyMaster()
+                port = PtyMaster(drop_when_full=True)  # nobody reading yet: bytes drop, as on a real line
                 play.pty_path = port.slave_path
+                play.pty = port
             else:
                 port = serial.serial_for_url(xbus, baudrate=921600, timeout=0)
             play._close.append(port.close)
