@@ -126,9 +126,9 @@ def demo(workspace: Path):
     with Workspace.open(workspace, readonly=True) as ws:
         console.print(status_table(ws.status_rows(), STAGES, f"workspace {ws.root}"))
     console.print(f"demo finished in {result.seconds:.1f} s; its outputs:")
-    for name, path in sorted(result.outputs.items()):
+    for _, path in sorted(result.outputs.items()):
         console.print(f"  {path}", highlight=False, soft_wrap=True)
-    console.print("look at preview.png first; preview.glb opens in any glTF viewer (Blender, MeshLab, a browser)",
+    console.print("look at preview.png and strip.png first; preview.glb opens in any glTF viewer (Blender, MeshLab, a browser)",
                   highlight=False, soft_wrap=True)  # fmt: skip
 
 

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import torch
 
 from dualhuman_builder.errors import RigError
 from dualhuman_builder.paths import RIGS_DIR

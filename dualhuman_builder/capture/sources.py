@@ -19,6 +19,7 @@ stage.
 
 from __future__ import annotations
 
+import abc
 from pathlib import Path
 from typing import Callable, Iterator
 from urllib.parse import parse_qsl, urlsplit
@@ -30,13 +31,14 @@ class SourceError(DualhumanError):
     """A source URL that cannot be opened."""
 
 
-class Source:
+class Source(abc.ABC):
     """Iterate to get samples; ``close()`` (or ``with``) releases the device."""
 
     url: str
 
+    @abc.abstractmethod
     def __iter__(self) -> Iterator:
-        raise TypeError(f"{type(self).__name__} does not yield samples")  # every registered source overrides it
+        """The typed samples, in the order the host received them."""
 
     def close(self) -> None:
         pass

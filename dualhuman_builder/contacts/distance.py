@@ -1,14 +1,16 @@
 """Signed distances between two deforming body meshes, fast enough for every frame.
 
-A warp BVH is built once per body and refit per frame (0.7 ms for anny's mesh on one CPU core);
-``mesh_query_point_sign_normal`` then gives, for each query point within ``band`` of the surface,
-the distance to the closest point with the pseudonormal sign (negative inside). It agrees with
-``igl.signed_distance`` (pseudonormal) to float32 precision, which ``tests/test_scenes.py``
-checks; libigl rebuilds its AABB tree on every call (99 ms for all 13,718 vertices of anny on 2
-cores), warp refits and, within a 5 cm band, answers in 10 ms (``benchmarks/bench_scenes.py``).
+A warp BVH is built once per body and refit per frame; ``mesh_query_point_sign_normal`` then
+gives, for each query point within ``band`` of the surface, the distance to the closest point with
+the pseudonormal sign (negative inside). ``tests/test_scenes.py`` checks it against
+``igl.signed_distance`` (pseudonormal) within 1e-4 m on scene distances stored as float16.
+libigl rebuilds its AABB tree on every call (99 ms for all 13,718 vertices of anny on 2 cores);
+warp refits and, within a 5 cm band, answers in 10 ms (``benchmarks/bench_scenes.py``).
 
 Broad phase: only vertices of body parts whose bounding boxes, grown by ``band``, overlap a part
-of the other body are queried; frames whose bodies are farther apart than ``band`` cost nothing. The other body's mesh is its
+of the other body are queried; frames whose bodies are farther apart than ``band`` cost almost
+nothing. On touching bodies the Python broad phase costs more than it saves (30 ms both ways
+against 2 x 10 ms without it, same benchmark). The other body's mesh is its
 body component only (:func:`~dualhuman_builder.body.topology.collision_faces`), whose
 pseudonormal signs are exact because it is closed.
 

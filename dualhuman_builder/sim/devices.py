@@ -27,6 +27,7 @@ and corrupted (with the byte offsets flipped).
 
 from __future__ import annotations
 
+import abc
 import errno
 import fcntl
 import math
@@ -282,7 +283,7 @@ class PlayReport:
 
 
 # ----------------------------------------------------------------------------------- players
-class Player:
+class Player(abc.ABC):
     """Base of the players: merging, pacing, faults, threading. Subclasses transmit."""
 
     def __init__(self, *, speed: float = 1.0, faults: Faults | None = None):
@@ -407,8 +408,9 @@ class Player:
                             f"(stream {packet.stream!r})")
         return packet.data
 
+    @abc.abstractmethod
     def _transmit(self, data) -> int | None:
-        raise NotImplementedError
+        """Write one encoded packet to the transport; the bytes written, or None if refused."""
 
     def _service(self) -> None:
         """Called before each packet (a serial device answers its host here)."""

@@ -212,7 +212,7 @@ class Performer:
             # knees point forward, between the pelvis's and the foot's headings
             knee_pole = self.body_dir(c.heading, (0.0, 0.0, 1.0)) + self.body_dir(f.heading, (0.0, 0.0, 1.0))
             leg.solve(local, transl, f.ankle, knee_pole, end_rotation=rot_y(f.heading))
-        for s, arm in self.arms.items():
+        for s in self.arms:
             track = c.arms.get(s) or self.relaxed_arm(local, transl, c.heading, s)
             self._solve_arm(local, transl, c.heading, s, track)
         if c.look_at is not None:

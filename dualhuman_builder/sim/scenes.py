@@ -191,7 +191,6 @@ def _stature_of(model, shape) -> float:
 def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | None = None) -> Scene:
     """Generate the scene ``params`` describes (deterministic for a given seed)."""
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.tracks import BodyTrack, InteractionSequence
 
     t_start = time.perf_counter()
     model = model or get_body_model()
@@ -297,7 +296,6 @@ def _correct_contacts(model, performers, chor: Choreography, poses):
     pair = get_pair_distance()
     hands = np.concatenate([_hand_vertices(model, s) for s in SIDES])  # only palms are corrected
     dists, near_hand = [], []
-    torso_specs = any(s.side is None for s in chor.contacts)
     for k in range(len(frames)):
         # each body's hands, and each body's vertices near the other's hands (a chest pressing
         # into a palm is as much a penetration as the palm pressing into the chest)
@@ -550,7 +548,7 @@ def describe_scene(scene: Scene) -> dict:
             "contract_failures": contract_failures(stats) if stats else []}  # fmt: skip
     summary = (f"{p.type} seed {p.seed}: {seq.num_frames} frames at {seq.fps:g} fps ({data['duration_s']:.2f} s), "
                f"actors {heights[0]:.2f} m and {heights[1]:.2f} m")  # fmt: skip
-    lines = [f"phases: " + ", ".join(f"{k} {a:.2f}-{b:.2f} s" for k, (a, b) in scene.phases.items()),
+    lines = ["phases: " + ", ".join(f"{k} {a:.2f}-{b:.2f} s" for k, (a, b) in scene.phases.items()),
              "contact phases: " + ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in scene.contact_phases)]  # fmt: skip
     if stats:
         lines.append(f"max penetration {1000 * stats['max_penetration_m']:.1f} mm, max stance-foot slide "
@@ -824,10 +822,11 @@ def pat_on_back(t, perfs, params, rng) -> Choreography:
 
 
 def hug(t, perfs, params, rng) -> Choreography:
-    """Walk up and hug: each right arm over the partner's left shoulder, each left arm under the
-    partner's right arm, both palms on the partner's back near its sides (where arms of anny's
-    length reach), torsos together, heads side by side (each turned to its own left). The torsos'
-    gap is corrected by moving the pelvises."""
+    """Walk up and hug. Partners within 8 cm of each other's height hug criss-cross (each right arm
+    over the partner's left shoulder, each left arm under the partner's right arm); otherwise the
+    taller one's arms go over the shoulders and the shorter one's under the arms. Palms rest on the
+    partner's back near its sides (where arms of anny's length reach), torsos together, heads side
+    by side (each turned to its own left). The torsos' gap is corrected by moving the pelvises."""
     pa, pb = perfs
     d0 = params.approach_distance or 1.8
     lateral = 0.05 + rng.uniform(-0.01, 0.01)  # each ends shifted this far to its own left
@@ -937,7 +936,7 @@ def dance_turn(t, perfs, params, rng) -> Choreography:
     dt = (t1 - t0) / n_steps
     for s in SIDES:
         r = pb.sk.rest[pb.sk.index(f"foot.{s}")]
-        place = lambda yaw: centre + rot_y(np.array(yaw)) @ np.array([r[0], 0.0, r[2]])  # noqa: E731
+        place = lambda yaw, r=r: centre + rot_y(np.array(yaw)) @ np.array([r[0], 0.0, r[2]])  # noqa: E731
         steps = []
         for k in range(n_steps):  # right foot on even steps, left on odd; both end square
             if (k % 2 == 0) == (s == "R") or (k == n_steps - 1 and not steps[-1].t1 > t0 + k * dt):
