@@ -86,3 +86,29 @@ def body_info_tables(info: dict[str, Any], bones: bool, mapping: bool, regions: 
             t.add_row(name, str(n))
         out.append(t)
     return out
+
+
+def live_status_table(status) -> Table:
+    """The recorder's live view (:class:`~dualhuman_builder.capture.recorder.LiveStatus`): per
+    source rate, loss, errors and last-sample age; per actor which suit and trackers are live."""
+    table = Table(title=f"take {escape(status.take)} — {status.elapsed_s:6.1f} s, {status.messages} messages",
+                  title_justify="left")  # fmt: skip
+    for col, just in (("source", "left"), ("kind", "left"), ("packets/s", "right"), ("samples/s", "right"),
+                      ("loss", "right"), ("errors", "right"), ("last sample", "right")):  # fmt: skip
+        table.add_column(col, justify=just)
+    for s in status.sources:
+        age = "-" if s.last_sample_age_s is None else f"{s.last_sample_age_s * 1000:.0f} ms"
+        if s.last_sample_age_s is not None and s.last_sample_age_s > 0.5:
+            age = f"[red]{age}[/]"
+        loss = f"[red]{s.loss}[/]" if s.loss else "0"
+        errors = f"[yellow]{s.errors}[/]" if s.errors else "0"
+        table.add_row(escape(s.name), s.kind, f"{s.packet_rate:.0f}", f"{s.sample_rate:.0f}", loss, errors, age)
+    if status.actors:
+        table.add_section()
+        for a in status.actors:
+            suit = {"live": "[green]suit live[/]", "stale": "[red]suit stale[/]", "absent": "[red]no suit[/]"}.get(a.suit, "")
+            tr = f"trackers {a.trackers_live}/{a.trackers_total}" if a.trackers_total else ""
+            if a.trackers_total and a.trackers_live < a.trackers_total:
+                tr = f"[yellow]{tr}[/]"
+            table.add_row(f"[bold]{escape(a.name)}[/]", "actor", suit, tr, "", "", "")
+    return table

@@ -1,47 +1,161 @@
 """Capture sources behind one small interface, named by URL (in rigs and on the command line).
 
-A source is opened from its URL, iterated for typed samples
-(:mod:`dualhuman_builder.capture.samples`: ``SuitFrame``, ``TrackerSample``, ``ImuSample``) and
-closed; it is a context manager. So far the registry holds the simulated studio:
+Like python-can's ``BusABC`` and pyserial's ``serial_for_url``: one scheme, one module, one
+class, imported lazily from :data:`SOURCES`; :func:`open_source` is the one door in.
 
-``sim://TYPE?seed=N[&fps=30][&tempo=1][&duration=S][&approach=M][&devices=N]``
-    generates the ground-truth scene ``TYPE`` (:data:`~dualhuman_builder.sim.scenes.SCENE_TYPES`)
-    with ``seed`` and yields every simulated device's samples in host receive-time order, decoded,
-    in-process (no transport: the fast path for tests). ``devices`` seeds the device errors
-    (default: the scene seed).
-``sim:///PATH/TO/SCENE.npz[?devices=N]``
-    the same from a scene saved by ``dualhuman scene make``.
+==============================================  =================================================
+``mvn+udp://HOST:9763[?allow=IP,IP]``           Xsens MVN network stream (:mod:`.mvn_udp`)
+``vive+udp://HOST:8051[?allow=IP,IP]``          VIVE tracker bridge datagrams (:mod:`.vive_udp`)
+``xbus:///dev/ttyUSB0?baud=921600``             Xsens MTi over serial; also ``xbus://loop`` and
+                                                pty paths (:mod:`.xbus_serial`)
+``mti+can://INTERFACE/CHANNEL``                 MTi-600 over CAN via python-can (:mod:`.mti_can`)
+``vive+usb://[?serial=...]``                    VIVE tracker IMU over USB HID (:mod:`.vive_usb`)
+``sim://TYPE?seed=N``                           simulated studio, in-process (:mod:`.sim_source`)
+==============================================  =================================================
 
-The live device families (``mvn+udp``, ``xbus``, ``mti+can``, ``vive+udp``, ``vive+usb``) are
-named in :data:`dualhuman_builder.rig.SOURCE_SCHEMES` and join this registry with the capture
-stage.
+Two layers, so that a recording can be replayed bit for bit:
+
+* a :class:`Source` owns the transport. :meth:`Source.read` returns the :class:`RawPacket` s that
+  arrived — each exactly what one transport read delivered (one UDP datagram, one serial read,
+  one CAN frame as a 16-byte SocketCAN ``can_frame``) stamped with the host's monotonic clock;
+* a :class:`Decoder` turns those packets into typed samples (:mod:`.samples`). It holds all the
+  protocol state (reassembly, resynchronisation, grouping, loss counters) and is deterministic:
+  the same packets in the same order give the same samples, which is what replay relies on
+  (:meth:`Source.make_decoder` builds one from the URL without opening any device).
+
+Bad input never raises out of a decoder: a corrupt, truncated, duplicated or unknown packet is
+counted in :attr:`Decoder.counters` (and, when a person should know, logged in
+:attr:`Decoder.events`), and decoding goes on with the next packet.
 """
 
 from __future__ import annotations
 
 import abc
-from pathlib import Path
-from typing import Callable, Iterator
-from urllib.parse import parse_qsl, urlsplit
+import importlib
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Iterator
+from urllib.parse import SplitResult, parse_qsl, urlsplit
 
 from dualhuman_builder.errors import DualhumanError
 
 
 class SourceError(DualhumanError):
-    """A source URL that cannot be opened."""
+    """A source URL that cannot be opened (unknown scheme, bad parameter, device absent)."""
+
+
+class SourceLost(SourceError):
+    """A device went away while it was being read (unplugged, port closed, bus down).
+
+    Raised by :meth:`Source.read`; the recorder stops the take cleanly and keeps what it has."""
+
+
+@dataclass(frozen=True, slots=True)
+class RawPacket:
+    """What one transport read delivered, as it arrived.
+
+    ``host_time_ns``: ``time.monotonic_ns()`` when the read returned (int, ns); ``data``: the
+    bytes — one UDP datagram, one serial read (any chunking), one CAN frame as a 16-byte SocketCAN
+    ``struct can_frame`` (:func:`dualhuman_builder.capture.wire.mti_can.pack_can_frame`), one USB
+    HID report."""
+
+    host_time_ns: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class SourceEvent:
+    """Something a person should hear about: ``kind`` (a short slug such as ``stale``,
+    ``segment-count-changed``, ``resync``), ``entity`` (``mvn/1``, ``vive/LHR-...``, or the
+    source), a human ``message``, and the host time it happened."""
+
+    host_time_ns: int
+    kind: str
+    entity: str
+    message: str
+
+
+class Decoder(abc.ABC):
+    """Raw packets of one source -> typed samples. Deterministic and never raises on bad input.
+
+    ``counters``: named counts, always at least ``packets``, ``bytes`` and ``samples``; the
+    device-specific ones (``lost``, ``duplicate``, ``out_of_order``, ``bad_checksum``,
+    ``truncated``, ``unknown_id``, ...) are documented by each decoder. ``events``: notable things
+    in order (drained by whoever shows them: :meth:`pop_events`)."""
+
+    def __init__(self) -> None:
+        self.counters: Counter = Counter()
+        self.events: list[SourceEvent] = []
+
+    @abc.abstractmethod
+    def feed(self, packet: RawPacket) -> list:
+        """Decode one packet; returns the samples it completed (maybe none)."""
+
+    def finish(self) -> list:
+        """End of the stream: the samples still held back, if any are complete enough to keep."""
+        return []
+
+    def status(self, now_ns: int) -> dict[str, dict[str, Any]]:
+        """Liveness per entity (character, tracker, device) at host time ``now_ns``: a dict per
+        entity with at least ``last_ns`` (host time of its last sample) and ``live`` (bool)."""
+        return {}
+
+    def event(self, host_time_ns: int, kind: str, entity: str, message: str) -> None:
+        self.events.append(SourceEvent(int(host_time_ns), kind, entity, message))
+
+    def pop_events(self) -> list[SourceEvent]:
+        out, self.events = self.events, []
+        return out
 
 
 class Source(abc.ABC):
-    """Iterate to get samples; ``close()`` (or ``with``) releases the device."""
+    """A device (or a simulated one) named by ``url``. Iterate for samples, or :meth:`read`
+    raw packets and feed them to :attr:`decoder` yourself (what the recorder does).
 
-    url: str
+    Subclasses set :attr:`kind` (``mvn``, ``vive``, ``xbus``, ``mti-can``, ``vive-usb``,
+    ``sim``) and :data:`PARAMS` (the URL query parameters they accept), open the transport in
+    ``__init__`` (raising :class:`SourceError` with a fix when they cannot), and implement
+    :meth:`read` and :meth:`make_decoder`."""
+
+    kind: str = ""
+    PARAMS: tuple[str, ...] = ()
+
+    def __init__(self, url: str):
+        self.url = url
+        #: Transport-level counts (``rejected_senders``, ``kernel_drops``, ...).
+        self.counters: Counter = Counter()
+        self.decoder: Decoder | None = None
+        self.closed = False
 
     @abc.abstractmethod
+    def read(self, timeout: float) -> list[RawPacket]:
+        """What arrived within ``timeout`` seconds ([] if nothing), in arrival order. Raises
+        :class:`SourceLost` when the device is gone; never for one bad packet."""
+
+    @classmethod
+    def make_decoder(cls, url: str) -> Decoder:
+        """A fresh decoder for the packets of a source opened with ``url`` (used by replay)."""
+        raise SourceError(f"{cls.__name__} has no decoder")
+
+    def stats(self) -> dict[str, int]:
+        """Transport and decoder counters together."""
+        out = dict(self.counters)
+        if self.decoder is not None:
+            out.update(self.decoder.counters)
+        return out
+
     def __iter__(self) -> Iterator:
-        """The typed samples, in the order the host received them."""
+        """Samples as they arrive, until :meth:`close` (or the device is lost: SourceLost)."""
+        if self.decoder is None:
+            self.decoder = self.make_decoder(self.url)
+        while not self.closed:
+            for packet in self.read(0.1):
+                yield from self.decoder.feed(packet)
+        yield from self.decoder.finish()
 
     def close(self) -> None:
-        pass
+        self.closed = True
 
     def __enter__(self):
         return self
@@ -50,68 +164,65 @@ class Source(abc.ABC):
         self.close()
 
 
-def _number(query: dict, key: str, kind, default):
+def now_ns() -> int:
+    """The host clock every sample is stamped with: ``time.monotonic_ns()``."""
+    return time.monotonic_ns()
+
+
+def parse_source_url(url: str, params: tuple[str, ...]) -> tuple[SplitResult, dict[str, str]]:
+    """Split ``url``; its query as a dict. Unknown or repeated parameters raise SourceError."""
+    parts = urlsplit(url)
+    pairs = parse_qsl(parts.query, keep_blank_values=True)
+    query = dict(pairs)
+    if len(query) != len(pairs):
+        raise SourceError(f"a parameter is given twice in {url!r}")
+    unknown = sorted(set(query) - set(params))
+    if unknown:
+        raise SourceError(f"unknown {parts.scheme}:// parameter(s) {', '.join(unknown)} in {url!r}",
+                          fix=f"use only {', '.join(params) or 'no parameters'}")  # fmt: skip
+    return parts, query
+
+
+def number_param(query: dict, key: str, kind, default):
+    """``query[key]`` as ``kind`` (int or float), ``default`` when absent; SourceError if not a number."""
     if key not in query:
         return default
     try:
         return kind(query[key])
     except ValueError:
-        raise SourceError(f"{key}={query[key]!r} is not a {kind.__name__}", fix=f"give {key} as a number") from None
+        raise SourceError(f"{key}={query[key]!r} is not a{'n' if kind is int else ''} {kind.__name__}",
+                          fix=f"give {key} as a number") from None  # fmt: skip
 
 
-class SimSource(Source):
-    """The simulated studio (:mod:`dualhuman_builder.sim.studio`) playing a ground-truth scene.
-
-    ``scene``: the :class:`~dualhuman_builder.sim.scenes.Scene`; ``studio``: the
-    :class:`~dualhuman_builder.sim.studio.SimStudio` whose samples are yielded."""
-
-    def __init__(self, url: str, progress: Callable[[str], None] | None = None):
-        from dualhuman_builder.sim.scenes import SCENE_TYPES, Scene, SceneParams, make_scene
-        from dualhuman_builder.sim.studio import simulate_studio
-
-        self.url = url
-        parts = urlsplit(url)
-        query = dict(parse_qsl(parts.query, keep_blank_values=True))
-        known = {"seed", "fps", "tempo", "duration", "approach", "devices"}
-        unknown = sorted(set(query) - known)
-        if unknown:
-            raise SourceError(f"unknown sim:// parameter(s) {', '.join(unknown)} in {url!r}",
-                              fix=f"use only {', '.join(sorted(known))}")  # fmt: skip
-        if parts.netloc:
-            if parts.netloc not in SCENE_TYPES:
-                raise SourceError(f"unknown scene type {parts.netloc!r} in {url!r}",
-                                  fix=f"choose one of {', '.join(SCENE_TYPES)}")  # fmt: skip
-            params = SceneParams(type=parts.netloc, seed=_number(query, "seed", int, 0),
-                                 fps=_number(query, "fps", float, 30.0), tempo=_number(query, "tempo", float, 1.0),
-                                 duration=_number(query, "duration", float, None),
-                                 approach_distance=_number(query, "approach", float, None))  # fmt: skip
-            self.scene = make_scene(params, log=progress)
-        elif parts.path:
-            path = Path(parts.path)
-            if not path.is_file():
-                raise SourceError(f"no scene file {path}", fix="make one with `dualhuman scene make --out FILE`")
-            self.scene = Scene.load(path)
-        else:
-            raise SourceError(f"{url!r} names neither a scene type nor a scene file",
-                              fix="write sim://handshake?seed=3 or sim:///path/to/scene.npz")  # fmt: skip
-        seed = _number(query, "devices", int, self.scene.params.seed)
-        self.studio = simulate_studio(self.scene.sequence, seed=seed, progress=progress)
-
-    def __iter__(self) -> Iterator:
-        return self.studio.samples()
+#: Scheme -> "module:Class" (imported when first used, like python-can's interface table).
+SOURCES: dict[str, str] = {
+    "mvn+udp": "dualhuman_builder.capture.mvn_udp:MvnUdpSource",
+    "vive+udp": "dualhuman_builder.capture.vive_udp:ViveUdpSource",
+    "xbus": "dualhuman_builder.capture.xbus_serial:XbusSource",
+    "mti+can": "dualhuman_builder.capture.mti_can:MtiCanSource",
+    "vive+usb": "dualhuman_builder.capture.vive_usb:ViveUsbSource",
+    "sim": "dualhuman_builder.capture.sim_source:SimSource",
+}
 
 
-SOURCES: dict[str, Callable[..., Source]] = {"sim": SimSource}
+def source_class(url: str) -> type[Source]:
+    """The :class:`Source` subclass that handles ``url``'s scheme."""
+    from dualhuman_builder.rig import SOURCE_SCHEMES
+
+    scheme = urlsplit(url).scheme
+    if scheme not in SOURCES:
+        known = ", ".join(s + "://" for s in SOURCE_SCHEMES)
+        raise SourceError(f"unknown source scheme {scheme!r} in {url!r}", fix=f"use one of {known}")
+    module, _, name = SOURCES[scheme].partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def open_source(url: str, **kwargs) -> Source:
     """Open the source ``url`` names (see the module docstring for the schemes)."""
-    from dualhuman_builder.rig import SOURCE_SCHEMES
+    return source_class(url)(url, **kwargs)
 
-    scheme = urlsplit(url).scheme
-    if scheme in SOURCES:
-        return SOURCES[scheme](url, **kwargs)
-    if scheme in SOURCE_SCHEMES:
-        raise SourceError(f"the {scheme}:// source is not available in this version",
-                          fix="record with a sim:// source for now; live devices come with the capture stage")  # fmt: skip
-    raise SourceError(f"unknown source scheme {scheme!r} in {url!r}", fix=f"use one of {', '.join(SOURCE_SCHEMES)}")
+
+def make_decoder(url: str) -> Decoder:
+    """A fresh decoder for packets recorded from ``url`` (no device is opened)."""
+    return source_class(url).make_decoder(url)
+

@@ -26,6 +26,11 @@ right-handed, so an OpenVR bridge sends its values as they are; a libsurvive (Z-
 them with :data:`dualhuman_builder.conventions.ZUP_TO_YUP` first. A pose that is not valid is sent
 with the valid flag clear; its non-finite values, if any, are sent as 0 (as OpenVR reports a lost
 pose), so a datagram never carries NaN.
+
+:func:`encode_tracker` writes a datagram, :func:`decode_tracker` reads one back bit for bit (or
+raises :class:`ViveFormatError` naming the counter the bad datagram falls under); the stream
+logic (duplicates, order, tracking loss, liveness) is
+:class:`~dualhuman_builder.capture.vive_udp.ViveUdpDecoder`'s.
 """
 
 from __future__ import annotations
@@ -76,3 +81,63 @@ def encode_tracker(sample: TrackerSample, *, connected: bool = True) -> bytes:
     flags = (FLAG_POSE_VALID if sample.valid else 0) | (FLAG_CONNECTED if connected else 0)
     return TRACKER_DATAGRAM.pack(MAGIC, VERSION, flags, 0, serial, int(sample.device_time_ns),
                                  *pos, *quat, *vel, *ang)
+
+
+# ----------------------------------------------------------------------------------- decoding
+class ViveFormatError(ValueError):
+    """A datagram that is not a well-formed tracker datagram. ``counter`` names the decoder
+    counter it falls under: ``truncated`` (shorter than 128 bytes), ``bad_length`` (longer),
+    ``bad_magic``, ``bad_version``, ``bad_field`` (reserved flag bits or reserved bytes set, a
+    serial that is empty, not ASCII or has bytes after its NUL padding starts), ``bad_pose`` (a
+    pose flagged valid with NaN/inf or a quaternion whose norm is off 1 by more than 1e-3)."""
+
+    def __init__(self, counter: str, message: str):
+        super().__init__(message)
+        self.counter = counter
+
+
+def decode_tracker(data: bytes, host_time_ns: int) -> TrackerSample:
+    """Inverse of :func:`encode_tracker`: one 128-byte datagram -> :class:`TrackerSample`.
+
+    ``valid`` is the datagram's pose-valid flag as sent (the device-connected flag is not part of
+    the sample: read it with :func:`datagram_connected`). Positions and quaternions come back as the exact float64 sent, velocities as the float32 sent
+    (widened to float64); all arrays are read-only. ``host_time_ns``: when the datagram arrived
+    (int ns). Raises :class:`ViveFormatError` (with the counter name) for anything malformed;
+    the payload of a pose flagged invalid is not checked (it is meaningless by definition).
+    """
+    n = len(data)
+    if n != TRACKER_DATAGRAM.size:
+        kind = "truncated" if n < TRACKER_DATAGRAM.size else "bad_length"
+        raise ViveFormatError(kind, f"tracker datagram has {n} bytes, expected {TRACKER_DATAGRAM.size}")
+    magic, version, flags, reserved, raw_serial, t_ns, *values = TRACKER_DATAGRAM.unpack(data)
+    if magic != MAGIC:
+        raise ViveFormatError("bad_magic", f"tracker datagram starts with {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise ViveFormatError("bad_version", f"tracker datagram version {version}, this decoder reads {VERSION}")
+    if flags & ~(FLAG_POSE_VALID | FLAG_CONNECTED) or reserved:
+        raise ViveFormatError("bad_field", f"reserved bits set (flags 0x{flags:02x}, reserved 0x{reserved:04x})")
+    name = raw_serial.rstrip(b"\0")
+    if not name or b"\0" in name or not name.isascii():
+        raise ViveFormatError("bad_field", f"bad tracker serial field {raw_serial!r}")
+    valid = bool(flags & FLAG_POSE_VALID)
+    pos = np.array(values[0:3], dtype=np.float64)
+    quat = np.array(values[3:7], dtype=np.float64)
+    vel = np.array(values[7:10], dtype=np.float64)
+    ang = np.array(values[10:13], dtype=np.float64)
+    serial = name.decode("ascii")
+    if valid:
+        if not np.all(np.isfinite(values)):
+            raise ViveFormatError("bad_pose", f"valid pose of tracker {serial} holds NaN or infinite values")
+        # a corrupted exponent can make a component huge: bound it before squaring (no overflow)
+        norm = float(np.linalg.norm(quat)) if np.abs(quat).max() <= 2.0 else float(np.abs(quat).max())
+        if abs(norm - 1.0) > 1e-3:
+            raise ViveFormatError("bad_pose", f"valid pose of tracker {serial} has a quaternion of norm {norm:.6g}")
+    for a in (pos, quat, vel, ang):
+        a.setflags(write=False)
+    return TrackerSample(serial=serial, valid=valid, device_time_ns=int(t_ns), host_time_ns=int(host_time_ns),
+                         position=pos, orientation=quat, velocity=vel, angular_velocity=ang)  # fmt: skip
+
+
+def datagram_connected(data: bytes) -> bool:
+    """The device-connected flag (bit 1 of byte 5) of a datagram :func:`decode_tracker` accepted."""
+    return len(data) > 5 and bool(data[5] & FLAG_CONNECTED)

@@ -1,0 +1,385 @@
+"""Typed samples as MCAP messages with their schemas inside the file (ROS 1 message encoding).
+
+Every sample dataclass of :mod:`dualhuman_builder.capture.samples` maps to a ROS 1 message
+definition (``ros1msg`` schema, ``ros1`` message encoding) named ``dualhuman/<ClassName>``, built
+from its fields — so the ``mcap`` CLI (``mcap cat --json``), Foxglove and the ROS 1 tooling decode
+our takes without our code. ROS 1 serialisation is little-endian and packed: fixed-size fields as
+they are, strings and arrays with a ``uint32`` length (count) prefix.
+
+Field kinds and their ROS 1 types:
+
+=====================  =========================================================================
+``int``                ``int64``
+``float``              ``float64``
+``bool``               ``bool`` (one byte)
+``str``                ``string`` (UTF-8)
+``tuple[str, ...]``    ``string[]``
+``numpy.ndarray``      ``float64[] NAME`` / ``int64[] NAME`` / ``bool[] NAME`` (flattened, C order)
+                       plus ``uint32[] NAME__shape`` (its shape)
+=====================  =========================================================================
+
+An array's element type comes from the first sample of a channel (:func:`layout_for`); later
+samples are cast to it. Values round-trip exactly (float64, int64), so a sample read back from a
+take equals the one that was recorded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import operator
+import struct
+import typing
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Callable
+
+import numpy as np
+
+from dualhuman_builder.errors import FormatError
+
+SCHEMA_ENCODING = "ros1msg"
+MESSAGE_ENCODING = "ros1"
+SCHEMA_PREFIX = "dualhuman/"
+
+_ARRAY_TYPES = {"f": ("float64", "<f8"), "i": ("int64", "<i8"), "u": ("int64", "<i8"), "b": ("bool", "u1")}
+_DTYPES = {"float64": "<f8", "int64": "<i8", "bool": "u1"}
+_U32 = struct.Struct("<I")
+_I64 = struct.Struct("<q")
+_F64 = struct.Struct("<d")
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    name: str
+    kind: str  # int, float, bool, str, strs, array
+    ros_type: str  # element type for arrays
+    dtype: str | None = None  # numpy dtype of an array's elements on the wire
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How one sample class is laid out in a channel: ``schema_name``, ``definition`` (ros1msg
+    text) and the fields in order."""
+
+    cls: type
+    schema_name: str
+    fields: tuple[FieldSpec, ...]
+
+    @property
+    def definition(self) -> str:
+        lines = []
+        for f in self.fields:
+            if f.kind == "array":
+                lines += [f"{f.ros_type}[] {f.name}", f"uint32[] {f.name}__shape"]
+            elif f.kind == "strs":
+                lines.append(f"string[] {f.name}")
+            else:
+                lines.append(f"{f.ros_type} {f.name}")
+        return "\n".join(lines) + "\n"
+
+
+_SCALARS = {int: ("int", "int64"), float: ("float", "float64"), bool: ("bool", "bool"), str: ("str", "string")}
+
+
+@lru_cache(maxsize=None)
+def _field_kinds(cls: type) -> tuple[tuple[str, str, str], ...]:
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if t in _SCALARS:
+            out.append((f.name, *_SCALARS[t]))
+        elif t is np.ndarray:
+            out.append((f.name, "array", ""))
+        elif typing.get_origin(t) is tuple and typing.get_args(t) in ((str, ...),):
+            out.append((f.name, "strs", "string"))
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name}: type {t} cannot be written to a take "
+                            f"(use int, float, bool, str, tuple[str, ...] or numpy arrays)")
+    return tuple(out)
+
+
+def layout_for(sample) -> Layout:
+    """The layout of ``sample``'s class, array element types taken from ``sample``."""
+    cls = type(sample)
+    fields = []
+    for name, kind, ros in _field_kinds(cls):
+        if kind == "array":
+            arr = np.asarray(getattr(sample, name))
+            ros, dtype = _ARRAY_TYPES.get(arr.dtype.kind, ("float64", "<f8"))
+            fields.append(FieldSpec(name, kind, ros, dtype))
+        else:
+            fields.append(FieldSpec(name, kind, ros))
+    return Layout(cls, SCHEMA_PREFIX + cls.__name__, tuple(fields))
+
+
+def make_encoder(layout: Layout) -> Callable[[Any], bytes]:
+    """A function ``sample -> bytes`` for ``layout``, compiled once: runs of fixed-size scalar
+    fields are packed by one ``struct`` call, arrays are copied only when not already
+    little-endian and contiguous in the schema's element type."""
+    ops: list[Callable[[Any], Any]] = []
+    run: list[FieldSpec] = []
+
+    def close_run() -> None:
+        if not run:
+            return
+        st = struct.Struct("<" + "".join({"int": "q", "float": "d", "bool": "?"}[f.kind] for f in run))
+        get = operator.attrgetter(*(f.name for f in run))
+        if len(run) == 1:
+            ops.append(lambda s, st=st, get=get: st.pack(get(s)))
+        else:
+            ops.append(lambda s, st=st, get=get: st.pack(*get(s)))
+        run.clear()
+
+    for f in layout.fields:
+        if f.kind in ("int", "float", "bool"):
+            run.append(f)
+            continue
+        close_run()
+        get = operator.attrgetter(f.name)
+        if f.kind == "str":
+            ops.append(lambda s, get=get: _str_bytes(get(s)))
+        elif f.kind == "strs":
+            ops.append(lambda s, get=get: _strs_bytes(get(s)))
+        else:
+            ops.append(lambda s, get=get, dt=np.dtype(f.dtype): _array_bytes(get(s), dt))
+    close_run()
+
+    def encode(sample) -> bytes:
+        return b"".join([op(sample) for op in ops])
+
+    return encode
+
+
+def _str_bytes(v: str) -> bytes:
+    raw = v.encode("utf-8")
+    return _U32.pack(len(raw)) + raw
+
+
+_STRS_CACHE: dict[tuple, bytes] = {}
+_SHAPES = [struct.Struct(f"<{n + 1}I") for n in range(8)]
+
+
+def _strs_bytes(v: tuple) -> bytes:
+    # sample streams repeat the same name lists (segment names): encode each list once
+    out = _STRS_CACHE.get(v)
+    if out is None:
+        out = _U32.pack(len(v)) + b"".join(_str_bytes(x) for x in v)
+        if len(_STRS_CACHE) < 1024:
+            _STRS_CACHE[v] = out
+    return out
+
+
+def _array_bytes(v, dt: np.dtype) -> bytes:
+    arr = v if type(v) is np.ndarray else np.asarray(v)
+    if arr.dtype.num != dt.num:
+        arr = arr.astype(dt)
+    shape = arr.shape
+    n = len(shape)
+    tail = _SHAPES[n].pack(n, *shape) if n < 8 else struct.pack(f"<{n + 1}I", n, *shape)
+    return _U32.pack(arr.size) + arr.tobytes() + tail
+
+
+def encode(layout: Layout, sample) -> bytes:
+    """``sample`` serialised per ``layout`` (ROS 1, little-endian); see :func:`make_encoder`."""
+    enc = _ENCODERS.get(layout)
+    if enc is None:
+        enc = _ENCODERS[layout] = make_encoder(layout)
+    return enc(sample)
+
+
+_ENCODERS: dict[Layout, Callable[[Any], bytes]] = {}
+
+
+def parse_definition(schema_name: str, definition: str, classes: dict[str, type]) -> Layout:
+    """The layout of a schema read from a take (the inverse of :attr:`Layout.definition`)."""
+    if not schema_name.startswith(SCHEMA_PREFIX):
+        raise FormatError(f"schema {schema_name!r} is not one of ours")
+    cls = classes.get(schema_name[len(SCHEMA_PREFIX):])
+    if cls is None:
+        raise FormatError(f"schema {schema_name!r} names no known sample type",
+                          fix="read the take with the toolkit version that wrote it")  # fmt: skip
+    lines = [ln.split() for ln in definition.splitlines() if ln.strip()]
+    fields = []
+    for typ, name in lines:
+        if name.endswith("__shape"):
+            continue
+        if typ.endswith("[]"):
+            base = typ[:-2]
+            if base == "string":
+                fields.append(FieldSpec(name, "strs", "string"))
+            elif base in _DTYPES:
+                fields.append(FieldSpec(name, "array", base, _DTYPES[base]))
+            else:
+                raise FormatError(f"schema {schema_name!r}: unsupported array type {typ!r}")
+        else:
+            kind = {"int64": "int", "float64": "float", "bool": "bool", "string": "str"}.get(typ)
+            if kind is None:
+                raise FormatError(f"schema {schema_name!r}: unsupported field type {typ!r}")
+            fields.append(FieldSpec(name, kind, typ))
+    return Layout(cls, schema_name, tuple(fields))
+
+
+_DIMS = [struct.Struct(f"<{n}I") for n in range(8)]
+_NP = {k: np.dtype(k) for k in ("<f8", "<i8", "u1")}
+
+
+def decode(layout: Layout, data: bytes | memoryview):
+    """A sample from its ROS 1 bytes. Lengths are checked against the bytes present before any
+    allocation; a short or overlong message raises :class:`FormatError`."""
+    mv = memoryview(data)
+    n = len(mv)
+    pos = 0
+    values = {}
+    u32 = _U32.unpack_from
+    try:
+        for f in layout.fields:
+            k = f.kind
+            if k == "int":
+                values[f.name] = _I64.unpack_from(mv, pos)[0]
+                pos += 8
+            elif k == "float":
+                values[f.name] = _F64.unpack_from(mv, pos)[0]
+                pos += 8
+            elif k == "bool":
+                values[f.name] = bool(mv[pos])
+                pos += 1
+            elif k == "str":
+                m = u32(mv, pos)[0]
+                pos += 4
+                if pos + m > n:
+                    raise FormatError(f"{layout.schema_name}.{f.name}: string of {m} bytes past the end")
+                values[f.name] = str(mv[pos:pos + m], "utf-8")
+                pos += m
+            elif k == "strs":
+                count = u32(mv, pos)[0]
+                pos += 4
+                if 4 * count > n - pos:  # each string needs at least its 4-byte length
+                    raise FormatError(f"{layout.schema_name}.{f.name}: count {count} exceeds the message")
+                out = []
+                for _ in range(count):
+                    m = u32(mv, pos)[0]
+                    pos += 4
+                    if pos + m > n:
+                        raise FormatError(f"{layout.schema_name}.{f.name}: string of {m} bytes past the end")
+                    out.append(str(mv[pos:pos + m], "utf-8"))
+                    pos += m
+                values[f.name] = tuple(out)
+            else:
+                dt = _NP[f.dtype]
+                size = u32(mv, pos)[0]
+                pos += 4
+                nbytes = size * dt.itemsize
+                if pos + nbytes + 4 > n:
+                    raise FormatError(f"{layout.schema_name}.{f.name}: {size} values past the end")
+                flat = np.frombuffer(mv, dtype=dt, count=size, offset=pos)
+                pos += nbytes
+                ndim = u32(mv, pos)[0]
+                pos += 4
+                if ndim >= 8 or pos + 4 * ndim > n:
+                    raise FormatError(f"{layout.schema_name}.{f.name}: bad shape of {ndim} dimensions")
+                shape = _DIMS[ndim].unpack_from(mv, pos)
+                pos += 4 * ndim
+                if math.prod(shape) != size:
+                    raise FormatError(f"{layout.schema_name}.{f.name}: shape {shape} does not hold {size} values")
+                if f.ros_type == "bool":
+                    arr = flat.reshape(shape).astype(bool)
+                elif f.ros_type == "int64":
+                    arr = flat.reshape(shape).astype(np.int64)
+                else:
+                    arr = flat.reshape(shape).astype(np.float64)
+                values[f.name] = arr
+    except struct.error:
+        raise FormatError(f"{layout.schema_name} message is truncated ({n} bytes)") from None
+    except UnicodeDecodeError as e:
+        raise FormatError(f"{layout.schema_name}: a string is not UTF-8 ({e})") from None
+    if pos != n:
+        raise FormatError(f"{layout.schema_name} message has {n - pos} bytes after its last field")
+    return layout.cls(**values)
+
+
+def sample_classes() -> dict[str, type]:
+    """Every sample dataclass of :mod:`dualhuman_builder.capture.samples`, by class name."""
+    from dualhuman_builder.capture import samples
+
+    return {name: obj for name, obj in vars(samples).items()
+            if isinstance(obj, type) and dataclasses.is_dataclass(obj) and obj.__module__ == samples.__name__}
+
+
+# ---------------------------------------------------------------------- columns
+def message_dtype(layout: Layout, first: bytes | memoryview) -> np.dtype:
+    """A structured dtype matching ``first`` byte for byte (strings and array headers included),
+    for reading a channel whose messages all have the same length in one ``frombuffer``. Field
+    ``NAME`` holds the value (arrays with their shape as a subarray), ``NAME__head`` / ``NAME__tail``
+    the length and shape words, ``NAME__raw`` a string's bytes (compare across rows before use)."""
+    mv = memoryview(first)
+    pos = 0
+    names, formats, offsets = [], [], []
+
+    def put(name, fmt, size):
+        nonlocal pos
+        names.append(name)
+        formats.append(fmt)
+        offsets.append(pos)
+        pos += size
+
+    for f in layout.fields:
+        k = f.kind
+        if k in ("int", "float"):
+            put(f.name, "<i8" if k == "int" else "<f8", 8)
+        elif k == "bool":
+            put(f.name, "u1", 1)
+        elif k == "str":
+            m = _U32.unpack_from(mv, pos)[0]
+            put(f.name + "__raw", f"V{4 + m}", 4 + m)
+        elif k == "strs":
+            start = pos
+            count = _U32.unpack_from(mv, pos)[0]
+            p2 = pos + 4
+            for _ in range(count):
+                p2 += 4 + _U32.unpack_from(mv, p2)[0]
+            put(f.name + "__raw", f"V{p2 - start}", p2 - start)
+        else:
+            size = _U32.unpack_from(mv, pos)[0]
+            item = np.dtype(f.dtype).itemsize
+            ndim = _U32.unpack_from(mv, pos + 4 + size * item)[0]
+            shape = tuple(np.frombuffer(mv, "<u4", ndim, pos + 8 + size * item).tolist())
+            put(f.name + "__head", "<u4", 4)
+            put(f.name, (f.dtype, shape) if shape else f.dtype, size * item)
+            put(f.name + "__tail", f"V{4 + 4 * ndim}", 4 + 4 * ndim)
+    if pos != len(mv):
+        raise FormatError(f"{layout.schema_name}: message of {len(mv)} bytes, fields cover {pos}")
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": pos})
+
+
+def decode_columns(layout: Layout, datas: list) -> dict[str, Any] | None:
+    """All messages of one channel at once: ``{field: array (N, ...)}`` (strings: the one value
+    every row shares). None when the messages differ in length, shape or strings (then decode them
+    one by one)."""
+    if not datas:
+        return None
+    n0 = len(datas[0])
+    if any(len(d) != n0 for d in datas):
+        return None
+    dt = message_dtype(layout, datas[0])
+    rows = np.frombuffer(b"".join(datas), dtype=dt)
+    out: dict[str, Any] = {}
+    for f in layout.fields:
+        if f.kind in ("str", "strs"):
+            col = rows[f.name + "__raw"]
+            if not (col == col[0]).all():
+                return None
+            out[f.name] = getattr(decode(layout, datas[0]), f.name)
+        elif f.kind == "array":
+            head, tail = rows[f.name + "__head"], rows[f.name + "__tail"]
+            if not ((head == head[0]).all() and (tail == tail[0]).all()):
+                return None
+            arr = rows[f.name]
+            out[f.name] = arr.astype(bool) if f.ros_type == "bool" else np.ascontiguousarray(arr).astype(
+                np.int64 if f.ros_type == "int64" else np.float64, copy=False)
+        elif f.kind == "bool":
+            out[f.name] = rows[f.name].astype(bool)
+        else:
+            out[f.name] = np.ascontiguousarray(rows[f.name])
+    return out

@@ -1,0 +1,68 @@
+"""``sim://`` — the simulated studio as an in-process source (no transport; the fast path for tests).
+
+``sim://TYPE?seed=N[&fps=30][&tempo=1][&duration=S][&approach=M][&devices=N]``
+    generates the ground-truth scene ``TYPE`` (:data:`~dualhuman_builder.sim.scenes.SCENE_TYPES`)
+    with ``seed`` and yields every simulated device's samples in host receive-time order, decoded,
+    in-process. ``devices`` seeds the device errors (default: the scene seed).
+``sim:///PATH/TO/SCENE.npz[?devices=N]``
+    the same from a scene saved by ``dualhuman scene make``.
+
+Recording a ``sim://`` source (``dualhuman capture --source sim://...``) does not use this class:
+the recorder plays the simulated studio onto real loopback transports and records them through
+the live sources (:mod:`dualhuman_builder.capture.simulated_studio`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterator
+
+from dualhuman_builder.capture.sources import RawPacket, Source, SourceError, number_param, parse_source_url
+
+
+class SimSource(Source):
+    """The simulated studio (:mod:`dualhuman_builder.sim.studio`) playing a ground-truth scene.
+
+    ``scene``: the :class:`~dualhuman_builder.sim.scenes.Scene`; ``studio``: the
+    :class:`~dualhuman_builder.sim.studio.SimStudio` whose samples are yielded."""
+
+    kind = "sim"
+    PARAMS = ("seed", "fps", "tempo", "duration", "approach", "devices")
+
+    def __init__(self, url: str, progress: Callable[[str], None] | None = None):
+        from dualhuman_builder.sim.scenes import SCENE_TYPES, Scene, SceneParams, make_scene
+        from dualhuman_builder.sim.studio import simulate_studio
+
+        super().__init__(url)
+        parts, query = parse_source_url(url, self.PARAMS)
+        if parts.netloc:
+            if parts.netloc not in SCENE_TYPES:
+                raise SourceError(f"unknown scene type {parts.netloc!r} in {url!r}",
+                                  fix=f"choose one of {', '.join(SCENE_TYPES)}")  # fmt: skip
+            params = SceneParams(type=parts.netloc, seed=number_param(query, "seed", int, 0),
+                                 fps=number_param(query, "fps", float, 30.0),
+                                 tempo=number_param(query, "tempo", float, 1.0),
+                                 duration=number_param(query, "duration", float, None),
+                                 approach_distance=number_param(query, "approach", float, None))  # fmt: skip
+            try:
+                self.scene = make_scene(params, log=progress)
+            except ValueError as e:
+                raise SourceError(f"{url!r}: {e}", fix="adjust the sim:// parameters") from None
+        elif parts.path:
+            path = Path(parts.path)
+            if not path.is_file():
+                raise SourceError(f"no scene file {path}", fix="make one with `dualhuman scene make --out FILE`")
+            self.scene = Scene.load(path)
+        else:
+            raise SourceError(f"{url!r} names neither a scene type nor a scene file",
+                              fix="write sim://handshake?seed=3 or sim:///path/to/scene.npz")  # fmt: skip
+        seed = number_param(query, "devices", int, self.scene.params.seed)
+        self.studio = simulate_studio(self.scene.sequence, seed=seed, progress=progress)
+
+    def read(self, timeout: float) -> list[RawPacket]:
+        raise SourceError("sim:// runs in-process and has no raw packets to read",
+                          fix="iterate the source for samples, or record it with `dualhuman capture --source sim://...`, "
+                              "which plays it on loopback transports")  # fmt: skip
+
+    def __iter__(self) -> Iterator:
+        return self.studio.samples()

@@ -1,0 +1,184 @@
+"""The recorder and replay on real transports: simulated trackers on UDP loopback recorded into a
+take, read back bit for bit, re-decoded, put back on the wire; a full disk and kill -9 mid-take."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dualhuman_builder.capture.log.reader import check_take, repair_take
+from dualhuman_builder.capture.recorder import Recorder
+from dualhuman_builder.capture.replay import redecode, replay_packets, replay_samples, replay_to, verify_replay
+from dualhuman_builder.capture.sources import open_source
+from dualhuman_builder.rig import RigActor
+from dualhuman_builder.sim.devices import Faults, UdpPlayer, tracker_packets
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from test_capture_vive import twelve_trackers  # noqa: E402
+
+
+def same(a, b) -> bool:
+    if type(a) is not type(b):
+        return False
+    for k, v in vars(a).items():
+        w = getattr(b, k)
+        if isinstance(v, np.ndarray):
+            if v.shape != w.shape or v.tobytes() != np.asarray(w, dtype=v.dtype).tobytes():
+                return False
+        elif v != w:
+            return False
+    return True
+
+
+def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6):
+    stream = twelve_trackers(duration_s=duration_s)
+    src = open_source("vive+udp://127.0.0.1:0")
+    player = UdpPlayer(("127.0.0.1", src.port), speed=speed, faults=faults).add(tracker_packets(stream, clock="host"))
+    actors = [RigActor("alice", None, None, {s: "Pelvis" for s in list(stream.serials)[:6]})]
+    rec = Recorder(path, take="T1", sources=[("trackers", src)], actors=actors, flush_s=0.2)
+    player.start()
+    statuses = []
+    done_at = []
+
+    def until():
+        if player.running:
+            return False
+        done_at.append(time.monotonic())
+        return time.monotonic() - done_at[0] > 0.3
+
+    result = rec.run(until=until, on_status=statuses.append, status_every=0.05)
+    report = player.join()
+    rec.close()
+    return result, report, statuses, stream
+
+
+def test_record_replay_bit_identical_and_back_on_the_wire(tmp_path):
+    path = tmp_path / "T1.mcap"
+    result, report, statuses, stream = record_trackers(path)
+    assert result.ok and result.reason == "finished"
+    assert report.sent == report.packets
+    samples = [s for _, s in replay_samples(path)]
+    assert len(samples) == report.sent, "every datagram sent is a recorded sample (zero loss on loopback)"
+    packets = [p for _, p in replay_packets(path)]
+    assert [p.data for p in packets] == [player_p.data for player_p in sorted(
+        tracker_packets(stream, clock="host"), key=lambda p: p.time_ns)]  # fmt: skip
+    assert all(a.host_time_ns == p.host_time_ns for a, p in zip(samples, packets))
+    # re-decoding the raw bytes gives the recorded samples bit for bit
+    chk = verify_replay(path)
+    assert chk.identical and chk.samples == len(samples)
+    assert all(same(a, b) for (_, a), (_, b) in zip(replay_samples(path), redecode(path)))
+    # live status saw the actor's trackers
+    assert statuses and statuses[-1].sources[0].kind == "vive"
+    assert max(s.actors[0].trackers_live for s in statuses) == 6
+    assert check_take(path).ok
+    # back on the wire: a second source receives the same datagrams
+    sink = open_source("vive+udp://127.0.0.1:0")
+    rep = replay_to(path, [f"vive+udp://127.0.0.1:{sink.port}"], speed=math.inf)
+    got = []
+    deadline = time.monotonic() + 2
+    while len(got) < rep.packets and time.monotonic() < deadline:
+        got += sink.read(0.05)
+    sink.close()
+    assert rep.packets == len(packets) and [p.data for p in got] == [p.data for p in packets]
+
+
+def test_replay_at_recorded_timing(tmp_path):
+    path = tmp_path / "T1.mcap"
+    record_trackers(path, speed=4.0, duration_s=0.4)
+    packets = [p for _, p in replay_packets(path)]
+    recorded = (packets[-1].host_time_ns - packets[0].host_time_ns) / 1e9
+    sink = open_source("vive+udp://127.0.0.1:0")
+    t = time.perf_counter()
+    rep = replay_to(path, [f"vive+udp://127.0.0.1:{sink.port}"], speed=1.0)
+    elapsed = time.perf_counter() - t
+    sink.close()
+    assert rep.recorded_s == pytest.approx(recorded)
+    assert elapsed >= 0.95 * recorded  # paced, not dumped
+
+
+def test_faults_are_counted_and_recorded(tmp_path):
+    path = tmp_path / "T1.mcap"
+    result, report, _, _ = record_trackers(path, faults=Faults(seed=3, loss=0.05, duplicate=0.05))
+    st = result.source_stats["trackers"]
+    log = report.faults
+    assert st["duplicate"] == len(log.duplicated) > 0
+    assert st["packets"] == report.sent
+    assert st["samples"] == report.sent - len(log.duplicated)
+    path = tmp_path / "T2.mcap"
+    result, report, _, _ = record_trackers(path, faults=Faults(seed=4, corrupt=0.05))
+    st = result.source_stats["trackers"]
+    samples = [s for _, s in replay_samples(path)]
+    assert len(samples) == st["samples"]
+    assert len(list(replay_packets(path))) == report.sent, "damaged datagrams are recorded raw too"
+
+
+_DISK_FULL = textwrap.dedent("""
+    import resource, signal, sys
+    sys.path.insert(0, {tests!r})
+    from pathlib import Path
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, 150_000))
+    from test_capture_recorder import record_trackers
+    result, report, _, _ = record_trackers(Path({path!r}), speed=5.0, duration_s=1.0)
+    print("RESULT", result.reason, "|", result.error, flush=True)
+""")
+
+
+def test_disk_full_mid_take_stops_cleanly_and_keeps_the_data(tmp_path):
+    path = tmp_path / "full.mcap"
+    out = subprocess.run([sys.executable, "-c", _DISK_FULL.format(tests=str(ROOT / "tests"), path=str(path))],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)  # fmt: skip
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")]
+    assert line, out.stderr[-3000:]
+    assert "write-failed" in line[0] and "file-size limit" in line[0]
+    rep = check_take(path)
+    assert rep.messages > 0 and not rep.complete
+    fixed = repair_take(path, tmp_path / "fixed.mcap")
+    assert fixed.messages == rep.messages
+    assert check_take(tmp_path / "fixed.mcap").ok
+
+
+def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
+    """`dualhuman capture` recording a sender that never stops is killed with SIGKILL; the take
+    holds everything up to its last flushed chunk and repairs to a complete file."""
+    path = tmp_path / "K.mcap"
+    sink_port = 47_000 + os.getpid() % 1000
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "capture", "--source", f"trk=vive+udp://127.0.0.1:{sink_port}",
+                             "--take", "K", "--out", str(path), "--quiet"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    stream = twelve_trackers(duration_s=0.6)
+    packets = sorted(tracker_packets(stream, clock="host"), key=lambda p: p.time_ns)
+    import socket
+
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        deadline = time.monotonic() + 60
+        while not path.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        sent = 0
+        t_end = time.monotonic() + 2.5
+        while time.monotonic() < t_end:
+            for p in packets[:50]:
+                tx.sendto(p.data, ("127.0.0.1", sink_port))
+                sent += 1
+            time.sleep(0.01)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        tx.close()
+    rep = check_take(path)
+    assert not rep.complete
+    assert rep.per_topic["raw/trk"] > 0.3 * sent, "the flushed chunks (one per second) survive the kill"
+    repair_take(path)
+    assert check_take(path).ok
