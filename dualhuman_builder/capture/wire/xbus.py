@@ -1,4 +1,5 @@
-"""Xsens MTi "Xbus" serial protocol: frames, MTData2 records, and a simulated device's replies.
+"""Xsens MTi "Xbus" serial protocol: frames, MTData2 records, a stream parser and record decoder,
+and a simulated device's replies.
 
 Frame (``shared/reference/capture-protocols.md``, from ``ethz-asl/ethzasl_xsens_driver``)::
 
@@ -17,6 +18,11 @@ sensor to the MTi's **Z-up** earth frame, converted from our Y-up world with the
 ``ZUP_TO_YUP``), Acceleration, RateOfTurn and MagneticField ``!3f`` (sensor frame, unchanged),
 StatusWord ``!L``.
 
+Decoding: :class:`XbusParser` cuts a byte stream (any chunking) into frames, resynchronising
+after garbage and bad checksums; :func:`decode_mtdata2` splits MTData2 data into records
+(:data:`MTDATA2_RECORDS`, float32 and float64 precision); :func:`from_zup_wxyz` undoes the
+encoder's frame change.
+
 :class:`SimulatedMti` is the device's side of the configuration dialogue (WakeUp, GoToConfig,
 SetOutputConfiguration, GoToMeasurement, ReqDID); every accepted message is acknowledged with
 MID + 1, anything else answered with an Error (0x42) message.
@@ -24,9 +30,11 @@ MID + 1, anything else answered with an Error (0x42) message.
 
 from __future__ import annotations
 
+import math
 import struct
+from collections import Counter
 from enum import IntEnum
-from typing import Sequence
+from typing import MutableMapping, Sequence
 
 from dualhuman_builder.capture.samples import ImuSample
 from dualhuman_builder.capture.wire import check_finite, check_unit_quaternions, to_zup_wxyz
@@ -152,6 +160,218 @@ def encode_mtdata2(sample: ImuSample, outputs: Sequence[int] = DEFAULT_OUTPUTS) 
     return encode_message(MID.MT_DATA2, mtdata2_records(sample, outputs))
 
 
+# ----------------------------------------------------------------------------------- decoding
+_SYNC = bytes([PREAMBLE, BUS_ID])
+
+
+class XbusParser:
+    """Cuts an Xbus byte stream, in any chunking, into frames ``(mid, data)``.
+
+    Scans for ``FA FF``; reads the standard or extended length; checks the checksum. A partial
+    frame at the end waits for more bytes (:meth:`push` them). Lengths are never trusted: an
+    extended length of 254 or less (not a form the format allows) or one above ``max_length``
+    (default 65535, the format's maximum; a decoder may set less) is refused like a bad checksum,
+    and nothing is allocated for a claimed length — the parser only buffers bytes that arrived.
+
+    :attr:`frames`: valid frames so far (a plain int: it changes with every frame). ``counters``
+    (a :class:`collections.Counter`, shared with a decoder if given) counts the rest:
+    ``bytes_skipped`` (bytes discarded while looking for a frame, including the preamble byte of
+    each refused frame), ``resyncs`` (times sync was lost: a run of skipped bytes after a valid
+    frame or at the start), ``bad_checksum``, ``bad_length``, ``cut_frames`` (partial frames given
+    up by :meth:`flush`). After a refused frame the scan goes on one byte after its preamble, so a
+    frame hidden behind a cut one is still found.
+    """
+
+    def __init__(self, max_length: int = MAX_EXTENDED_LENGTH, counters: MutableMapping[str, int] | None = None):
+        if not 0 <= max_length <= MAX_EXTENDED_LENGTH:
+            raise ValueError(f"max_length must be within 0..{MAX_EXTENDED_LENGTH}, got {max_length}")
+        self.max_length = int(max_length)
+        self.counters = counters if counters is not None else Counter()
+        self.frames = 0
+        self._buf = bytearray()
+        self._pos = 0
+        self._synced = True
+
+    @property
+    def pending(self) -> int:
+        """Bytes held that are not yet part of a complete frame."""
+        return len(self._buf) - self._pos
+
+    def push(self, data: bytes) -> None:
+        """Append bytes that arrived; :meth:`pop` the frames they complete."""
+        if self._pos:
+            del self._buf[: self._pos]
+            self._pos = 0
+        self._buf += data
+
+    def feed(self, data: bytes) -> list[tuple[int, bytes]]:
+        """:meth:`push` ``data`` and return every frame now complete, in order."""
+        self.push(data)
+        return self._scan(-1)
+
+    def pop(self) -> tuple[int, bytes] | None:
+        """The next complete frame ``(mid, data)`` from what was pushed, or None."""
+        frames = self._scan(1)
+        return frames[0] if frames else None
+
+    def flush(self) -> list[tuple[int, bytes]]:
+        """No more bytes are coming (end of stream, or a device gone quiet): give up on a partial
+        frame (counted ``cut_frames``) and return the frames found behind its preamble."""
+        out = []
+        while True:
+            out += self._scan(-1)
+            if not self.pending:
+                return out
+            if self.pending > 1:  # a frame's start whose rest never came
+                self.counters["cut_frames"] += 1
+            self._skip(1)
+            self._pos += 1
+
+    def rest(self) -> bytes:
+        """Remove and return the bytes not yet parsed (e.g. to hand them to another parser)."""
+        out = bytes(self._buf[self._pos:])
+        self._buf.clear()
+        self._pos = 0
+        return out
+
+    def _skip(self, n: int) -> None:
+        self.counters["bytes_skipped"] += n
+        if self._synced:
+            self.counters["resyncs"] += 1
+            self._synced = False
+
+    def _scan(self, limit: int) -> list[tuple[int, bytes]]:
+        """Up to ``limit`` (-1: all) complete frames from the buffer, consuming them."""
+        buf, pos, n = self._buf, self._pos, len(self._buf)
+        out: list[tuple[int, bytes]] = []
+        find = buf.find
+        while len(out) != limit:
+            i = find(_SYNC, pos)
+            if i < 0:
+                keep = n - 1 if n > pos and buf[n - 1] == PREAMBLE else n
+                if keep > pos:
+                    self._skip(keep - pos)
+                pos = keep
+                break
+            if i > pos:
+                self._skip(i - pos)
+                pos = i
+            if n - pos < 4:
+                break
+            length = buf[pos + 3]
+            if length != EXTENDED_LENGTH:
+                head = 4
+                bad = length > self.max_length
+            else:
+                if n - pos < 6:
+                    break
+                length, head = (buf[pos + 4] << 8) | buf[pos + 5], 6
+                bad = length <= MAX_STANDARD_LENGTH or length > self.max_length
+            if bad:
+                self.counters["bad_length"] += 1
+                self._skip(1)
+                pos += 1
+                continue
+            end = pos + head + length + 1
+            if end > n:
+                break  # a partial frame: wait for the rest
+            data = bytes(buf[pos + head: end - 1])
+            if (sum(data) + sum(buf[pos + 1: pos + head]) + buf[end - 1]) & 0xFF:
+                self.counters["bad_checksum"] += 1
+                self._skip(1)
+                pos += 1  # resynchronise one byte after the bad preamble
+                continue
+            out.append((buf[pos + 2], data))
+            pos = end
+            self._synced = True
+        self._pos = pos
+        self.frames += len(out)
+        return out
+
+
+#: Base data ID (precision bits clear) -> (name, payload format). Float formats (``f``) are read
+#: as float64 (``d``) when the ID's precision bits are 3. Coordinate-system bits (0x000C) other
+#: than 0 (ENU) are not decoded: such IDs count as unknown.
+MTDATA2_RECORDS: dict[int, tuple[str, str]] = {
+    0x1010: ("utc", "!LHBBBBBB"),  # ns, year, month, day, hour, minute, second, flags
+    0x1020: ("packet_counter", "!H"),
+    0x1060: ("sample_time_fine", "!L"),
+    0x1070: ("sample_time_coarse", "!L"),
+    0x2010: ("quaternion", "!4f"),  # w, x, y, z: sensor to Z-up earth
+    0x2020: ("rotation_matrix", "!9f"),
+    0x2030: ("euler", "!3f"),  # roll, pitch, yaw, degrees
+    0x4010: ("delta_v", "!3f"),
+    0x4020: ("acceleration", "!3f"),
+    0x4030: ("free_acceleration", "!3f"),
+    0x8020: ("rate_of_turn", "!3f"),
+    0x8030: ("delta_q", "!4f"),
+    0xC020: ("magnetic_field", "!3f"),
+    0xE010: ("status_byte", "!B"),
+    0xE020: ("status_word", "!L"),
+}
+PRECISION_MASK = 0x0003
+PRECISION_FLOAT32, PRECISION_FLOAT64 = 0x0, 0x3
+
+
+def _record_table() -> dict[int, tuple[int, struct.Struct]]:
+    table = {}
+    for did, (_, fmt) in MTDATA2_RECORDS.items():
+        table[did] = (did, struct.Struct(fmt))
+        if "f" in fmt:
+            table[did | PRECISION_FLOAT64] = (did, struct.Struct(fmt.replace("f", "d")))
+    return table
+
+
+_RECORDS = _record_table()
+_FLOAT_IDS = frozenset(did for did, (_, fmt) in MTDATA2_RECORDS.items() if "f" in fmt)
+
+
+def decode_mtdata2(data: bytes, counters: MutableMapping[str, int] | None = None) -> dict[int, tuple]:
+    """The records of MTData2 ``data``: base data ID (:data:`MTDATA2_RECORDS`, precision bits
+    clear) -> tuple of values (floats as Python floats, whatever the precision on the wire).
+
+    Never raises on bad data; counts in ``counters``: ``unknown_id`` (skipped by its size),
+    ``unsupported_precision`` (fixed-point 12.20 / 16.32 floats, skipped), ``bad_record_size``
+    (a size that does not match its ID's format; skipped), ``truncated`` (a record header or
+    payload running past the end: decoding stops there). A repeated ID keeps the last record.
+    """
+    if counters is None:
+        counters = Counter()
+    out: dict[int, tuple] = {}
+    off, n = 0, len(data)
+    unpack_header = RECORD_HEADER.unpack_from
+    records = _RECORDS
+    while off < n:
+        if off + 3 > n:
+            counters["truncated"] += 1
+            break
+        did, size = unpack_header(data, off)
+        off += 3
+        if off + size > n:
+            counters["truncated"] += 1
+            break
+        entry = records.get(did)
+        if entry is None:
+            precision_only = (did & ~PRECISION_MASK) in _FLOAT_IDS
+            counters["unsupported_precision" if precision_only else "unknown_id"] += 1
+        elif entry[1].size != size:
+            counters["bad_record_size"] += 1
+        else:
+            out[entry[0]] = entry[1].unpack_from(data, off)
+        off += size
+    return out
+
+
+_H = math.sqrt(0.5)
+
+
+def from_zup_wxyz(w: float, x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """Inverse of :func:`~dualhuman_builder.capture.wire.to_zup_wxyz` for one quaternion: an
+    orientation in the MTi's Z-up earth frame (w, x, y, z) -> the same in our Y-up world as
+    (x, y, z, w): ``ZUP_TO_YUP`` (-90 degrees about X) times ``q``. Plain floats (fast)."""
+    return _H * (x - w), _H * (y + z), _H * (z - y), _H * (w + x)
+
+
 # ----------------------------------------------------------------------------------- device
 class SimulatedMti:
     """The device side of the Xbus configuration dialogue of a single MTi.
@@ -179,11 +399,23 @@ class SimulatedMti:
         self.device_id = int(device_id) & 0xFFFFFFFF
         self.measuring = True
         self.output_configuration: list[tuple[int, int]] = [(int(x), 0xFFFF) for x in outputs]
-        self.frames_received = 0
-        self.bad_checksums = 0
-        self.bytes_skipped = 0
         self.errors_sent = 0
-        self._buffer = bytearray()
+        self._parser = XbusParser()
+
+    @property
+    def frames_received(self) -> int:
+        """Valid frames received from the host."""
+        return self._parser.frames
+
+    @property
+    def bad_checksums(self) -> int:
+        """Frames from the host dropped for a bad checksum."""
+        return self._parser.counters["bad_checksum"]
+
+    @property
+    def bytes_skipped(self) -> int:
+        """Bytes from the host discarded while resynchronising (garbage, bad frames' preambles)."""
+        return self._parser.counters["bytes_skipped"]
 
     @property
     def outputs(self) -> tuple[int, ...]:
@@ -196,37 +428,7 @@ class SimulatedMti:
 
     def answer(self, incoming: bytes) -> bytes:
         """Take bytes from the host; return the bytes the device writes in reply (maybe none)."""
-        self._buffer += incoming
-        out = bytearray()
-        buf = self._buffer
-        while True:
-            start = buf.find(bytes([PREAMBLE, BUS_ID]))
-            if start < 0:
-                keep = 1 if buf.endswith(bytes([PREAMBLE])) else 0
-                self.bytes_skipped += len(buf) - keep
-                del buf[: len(buf) - keep]
-                break
-            self.bytes_skipped += start
-            del buf[:start]
-            if len(buf) < 4:
-                break
-            n, head = buf[3], 4
-            if n == EXTENDED_LENGTH:
-                if len(buf) < 6:
-                    break
-                n, head = struct.unpack_from("!H", buf, 4)[0], 6
-            if len(buf) < head + n + 1:
-                break
-            frame = bytes(buf[: head + n + 1])
-            if sum(frame[1:]) & 0xFF:
-                self.bad_checksums += 1
-                self.bytes_skipped += 1
-                del buf[:1]  # resynchronise after the bad preamble
-                continue
-            del buf[: head + n + 1]
-            self.frames_received += 1
-            out += self._reply(frame[2], frame[head: head + n])
-        return bytes(out)
+        return b"".join(self._reply(mid, data) for mid, data in self._parser.feed(incoming))
 
     def _error(self, code: int) -> bytes:
         self.errors_sent += 1
