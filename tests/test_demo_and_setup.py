@@ -27,9 +27,10 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     ws_path = tmp_path / "demo"
     logs = []
     first = run_demo(ws_path, log=logs.append)
-    assert first.ran == ["scene", "devices"] and first.up_to_date == []
+    assert first.ran == ["scene", "devices", "capture"] and first.up_to_date == []
     out = first.outputs
     assert set(out) == {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
+                        "take.mcap", "capture.json",
                         *(f"meshes/{a}_{t}.ply" for a in ("sim-a", "sim-b") for t in ("first", "contact"))}  # fmt: skip
     scene = Scene.load(out["scene.npz"])
     seq = InteractionSequence.load(out["sequence.npz"])
@@ -52,11 +53,19 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     devices = json.loads(out["devices.json"].read_text())
     assert devices["samples"]["suit/0"] == pytest.approx(240 * 4.0, rel=0.03)
     assert len(devices["trackers"]) == 12 and devices["clocks"]["trackers"]["offset_s"] == 0.25
+    # the capture stage recorded the simulated studio through real transports, losslessly
+    cap = json.loads(out["capture.json"].read_text())
+    assert cap["complete"] and cap["replay_identical"]
+    assert cap["lost"] == {"suits": 0, "trackers": 0, "prop-imu": 0, "floor-imu": 0}
+    frames = cap["per_topic"]["suits/mvn/0/SuitFrame"]
+    assert frames == devices["samples"]["suit/0"], "every suit frame sent was recorded"
+    assert sum(n for t, n in cap["per_topic"].items() if t.endswith("TrackerSample")) == sum(
+        v for k, v in devices["samples"].items() if k.startswith("vive/"))  # fmt: skip
     with Workspace.open(ws_path) as ws:
-        for stage in ("scene", "devices"):
+        for stage in ("scene", "devices", "capture"):
             assert ws.stage_record(stage, DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
         assert [a.shape_source for a in ws.actors()] == ["stature", "stature"]
     mtimes = {p: p.stat().st_mtime_ns for p in out.values()}
     second = run_demo(ws_path, log=logs.append)
-    assert second.ran == [] and second.up_to_date == ["scene", "devices"]
+    assert second.ran == [] and second.up_to_date == ["scene", "devices", "capture"]
     assert {p: p.stat().st_mtime_ns for p in second.outputs.values()} == mtimes  # nothing rewritten

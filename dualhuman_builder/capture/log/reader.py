@@ -240,7 +240,7 @@ class TakeReader:
         """``(source name, packet)`` for every raw message, in recorded order."""
         for ch, msg in self.messages():
             if ch.topic.startswith("raw/"):
-                yield ch.metadata.get("source", ch.topic[4:]), RawPacket(msg.log_time, msg.data)
+                yield ch.metadata.get("source", ch.topic[4:]), RawPacket(msg.log_time, bytes(msg.data))
 
     def samples(self) -> Iterator[tuple[str, Any]]:
         """``(source name, sample)`` for every decoded sample, in recorded order."""
