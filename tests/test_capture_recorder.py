@@ -41,12 +41,12 @@ def same(a, b) -> bool:
     return True
 
 
-def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6):
+def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flush_s=0.2):
     stream = twelve_trackers(duration_s=duration_s)
     src = open_source("vive+udp://127.0.0.1:0")
     player = UdpPlayer(("127.0.0.1", src.port), speed=speed, faults=faults).add(tracker_packets(stream, clock="host"))
     actors = [RigActor("alice", None, None, {s: "Pelvis" for s in list(stream.serials)[:6]})]
-    rec = Recorder(path, take="T1", sources=[("trackers", src)], actors=actors, flush_s=0.2)
+    rec = Recorder(path, take="T1", sources=[("trackers", src)], actors=actors, flush_s=flush_s)
     player.start()
     statuses = []
     done_at = []
@@ -128,9 +128,9 @@ _DISK_FULL = textwrap.dedent("""
     sys.path.insert(0, {tests!r})
     from pathlib import Path
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, 150_000))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (250_000, 250_000))
     from test_capture_recorder import record_trackers
-    result, report, _, _ = record_trackers(Path({path!r}), speed=5.0, duration_s=1.0)
+    result, report, _, _ = record_trackers(Path({path!r}), speed=5.0, duration_s=1.0, flush_s=0.02)
     print("RESULT", result.reason, "|", result.error, flush=True)
 """)
 

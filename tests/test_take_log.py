@@ -148,6 +148,24 @@ def test_columns_equal_the_samples(tmp_path):
     np.testing.assert_array_equal(imu.columns["magnetic_field"], np.stack([s.magnetic_field for s in samples if isinstance(s, ImuSample)]))
 
 
+def test_columns_from_the_index_and_from_a_cut_off_take_agree(tmp_path):
+    from dualhuman_builder.capture.samples import SuitTimeCode
+
+    samples = synthetic_samples(300)
+    samples += [SuitTimeCode(0, k, k, k, 2_000_000_000 + k, f"00:00:{k // 100:02d}.{k % 1000:03d}", k) for k in range(300)]
+    path = tmp_path / "t.mcap"
+    write_take(path, samples, chunk_size=32 << 10).close()
+    full = read_columns(path)  # through the index
+    np.testing.assert_array_equal(full["suits/mvn/0/SuitTimeCode"].columns["text"], [s.text for s in samples[-300:]])
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
+    part = read_columns(cut)  # no index: every record scanned
+    c_full, c_part = full["suits/vive/LHR-1/TrackerSample"], part["suits/vive/LHR-1/TrackerSample"]
+    assert 0 < c_part.count < c_full.count
+    np.testing.assert_array_equal(c_part.columns["position"], c_full.columns["position"][: c_part.count])
+    assert c_part.columns["serial"] == "LHR-1"
+
+
 def test_never_overwrites_a_take(tmp_path):
     path = tmp_path / "t.mcap"
     write_take(path, synthetic_samples(2)).close()

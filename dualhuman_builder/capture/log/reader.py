@@ -18,10 +18,9 @@ import zlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
-from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema
 
 from dualhuman_builder.capture.log import schemas
 from dualhuman_builder.capture.log.mcapio import OP_CHANNEL, OP_MESSAGE, OP_SCHEMA, iter_chunk_records, message_fields
@@ -32,6 +31,8 @@ MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
 _OP_FOOTER = 0x02
 _OP_CHUNK = 0x06
+_OP_DATA_END = 0x0F
+_CHANNEL_ID = struct.Struct("<H")
 
 
 @dataclass
@@ -46,6 +47,11 @@ class TakeScan:
     records: int
     chunks: int
     tail: str | None
+
+
+#: Top-level records whose content we read (others, the indexes, are skipped).
+_CONTENT = {0x01: Header, OP_SCHEMA: Schema, OP_CHANNEL: Channel, OP_MESSAGE: Message, _OP_CHUNK: Chunk,
+            0x09: Attachment, 0x0C: Metadata}  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +81,16 @@ def _decompress(chunk) -> bytes:
     if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
         raise ValueError("chunk CRC mismatch")
     return data
+
+
+def _parse(op: int, body: bytes):
+    """A top-level record from its body, with the ``mcap`` library's record parsers."""
+    from mcap.data_stream import ReadDataStream
+
+    stream = ReadDataStream(io.BytesIO(body))
+    if op == OP_MESSAGE:
+        return Message.read(stream, len(body))
+    return _CONTENT[op].read(stream)
 
 
 def _chunk_items(chunk) -> Iterator[tuple]:
@@ -119,25 +135,6 @@ def scan_take(path: str | Path) -> TakeScan:
                                 None if complete else "bad closing magic")  # fmt: skip
 
 
-class _Prefix(io.RawIOBase):
-    """The first ``end`` bytes of a file, as a stream (so the reader never sees a partial record)."""
-
-    def __init__(self, f, end: int):
-        self._f, self._left = f, end
-
-    def readable(self) -> bool:
-        return True
-
-    def readinto(self, b) -> int:
-        n = min(len(b), self._left)
-        if n <= 0:
-            return 0
-        data = self._f.read(n)
-        b[: len(data)] = data
-        self._left -= len(data)
-        return len(data)
-
-
 class TakeReader:
     """Records of a take in file order, up to its last complete record.
 
@@ -156,39 +153,174 @@ class TakeReader:
         self.metadata: dict[str, dict[str, str]] = {}
         self.attachments: list[Attachment] = []
 
+    def _top(self) -> Iterator[tuple[int, bytes]]:
+        """``(opcode, body)`` of the top-level records of the data section that carry content
+        (header, schemas, channels, messages, chunks, metadata, attachments), in file order; index
+        records are skipped by seeking (their content is rebuilt from the data when needed)."""
+        end = self.scan.good_end
+        head = _RECORD_HEAD
+        with open(self.path, "rb") as f:
+            f.seek(len(MAGIC))
+            pos = len(MAGIC)
+            while pos + head.size <= end:
+                op, length = head.unpack(f.read(head.size))
+                if op == _OP_DATA_END or op == _OP_FOOTER:
+                    return
+                if op in _CONTENT:
+                    body = f.read(length)
+                    if len(body) < length:
+                        return
+                    yield op, body
+                else:
+                    f.seek(length, 1)
+                pos += head.size + length
+
     def _items(self) -> Iterator[tuple]:
         """``("msg", channel id, sequence, log time, publish time, data)`` for messages (data a
         memoryview) and ``("rec", record)`` for every other record, in file order."""
-        from mcap.exceptions import EndOfFile, McapError
+        for op, body in self._top():
+            if op == OP_MESSAGE:
+                yield ("msg", *message_fields(memoryview(body)))
+                continue
+            try:
+                rec = _parse(op, body)
+            except Exception as e:  # noqa: BLE001 - a damaged record: say so, go on with the next
+                self.problems.append(f"unreadable record (opcode 0x{op:02x}): {type(e).__name__}: {e}")
+                continue
+            if isinstance(rec, Chunk):
+                try:
+                    items = list(_chunk_items(rec))
+                except Exception as e:  # noqa: BLE001 - any decode failure of one chunk: skip it, say so
+                    self.problems.append(f"skipped a damaged chunk ({rec.message_start_time}..."
+                                         f"{rec.message_end_time} ns): {type(e).__name__}: {e}")
+                    continue
+                for item in items:
+                    if item[0] == "rec":
+                        self._note(item[1])
+                    yield item
+            else:
+                self._note(rec)
+                yield ("rec", rec)
+
+    def message_data(self, wanted: Callable[[Channel], bool]) -> dict[int, list]:
+        """The data of every message on the channels ``wanted`` accepts, per channel id, in file
+        order — the fast path (no per-message objects). Each list holds memoryviews of single
+        messages and/or 2-D uint8 arrays of equal-length messages, one row per message.
+
+        A complete take is read through its index (the summary's channels and chunk indexes, each
+        chunk's message index: gathered with numpy, no per-message Python); a take without an index
+        (cut off) by scanning every record."""
+        if self.scan.complete and not self.problems:
+            try:
+                return self._indexed_message_data(wanted)
+            except Exception as e:  # noqa: BLE001 - an index we cannot use: scan the records instead
+                self.problems.append(f"index unusable ({type(e).__name__}: {e}); records scanned instead")
+        return self._scanned_message_data(wanted)
+
+    def _indexed_message_data(self, wanted: Callable[[Channel], bool]) -> dict[int, list]:
+        import numpy as np
+        from mcap.reader import make_reader
+
+        def windows(buf, width: int):
+            """Every ``width``-byte window of ``buf`` as rows of a read-only view (no copy)."""
+            return np.ndarray((len(buf) - width + 1, width), dtype=np.uint8, buffer=buf, strides=(1, 1))
 
         with open(self.path, "rb") as f:
-            reader = StreamReader(io.BufferedReader(_Prefix(f, self.scan.good_end)), emit_chunks=True,
-                                  validate_crcs=False, record_size_limit=self.scan.size)  # fmt: skip
-            it = reader.records
-            while True:
-                try:
-                    rec = next(it)
-                except (StopIteration, EndOfFile):
-                    return
-                except (McapError, struct.error, ValueError) as e:
-                    self.problems.append(f"unreadable record after {len(self.channels)} channels: {e}")
-                    return
-                if isinstance(rec, Chunk):
-                    try:
-                        items = list(_chunk_items(rec))
-                    except Exception as e:  # noqa: BLE001 - any decode failure of one chunk: skip it, say so
-                        self.problems.append(f"skipped a damaged chunk ({rec.message_start_time}..."
-                                             f"{rec.message_end_time} ns): {type(e).__name__}: {e}")
+            summary = make_reader(f).get_summary()
+            if summary is None or not summary.chunk_indexes:
+                raise ValueError("no chunk index")
+            self.schemas.update(summary.schemas)
+            self.channels.update(summary.channels)
+            keep = {cid for cid, ch in summary.channels.items() if wanted(ch)}
+            out: dict[int, list] = {cid: [] for cid in keep}
+            size = self.scan.size
+            for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                if ci.chunk_start_offset + ci.chunk_length > size:
+                    raise ValueError("chunk index points past the end of the file")
+                f.seek(ci.chunk_start_offset)
+                head = f.read(9)
+                op, length = _RECORD_HEAD.unpack(head)
+                if op != _OP_CHUNK:
+                    raise ValueError(f"chunk index points at a record of opcode 0x{op:02x}")
+                data = _decompress(_parse(op, f.read(length)))
+                u8 = data
+                wanted_here = [(cid, off) for cid, off in ci.message_index_offsets.items() if cid in keep]
+                for cid, off in wanted_here:
+                    f.seek(off)
+                    op, length = _RECORD_HEAD.unpack(f.read(9))
+                    body = f.read(length)
+                    if op != 0x07 or len(body) < 6:
+                        raise ValueError("bad message index record")
+                    n_bytes = struct.unpack_from("<I", body, 2)[0]
+                    if 6 + n_bytes > len(body) or n_bytes % 16:
+                        raise ValueError("message index longer than its record")
+                    offsets = np.sort(np.frombuffer(body, dtype="<u8", count=n_bytes // 8, offset=6)[1::2]).astype(np.int64)
+                    if len(offsets) == 0:
                         continue
-                    for item in items:
-                        if item[0] == "rec":
-                            self._note(item[1])
-                        yield item
-                elif isinstance(rec, Message):
-                    yield ("msg", rec.channel_id, rec.sequence, rec.log_time, rec.publish_time, memoryview(rec.data))
-                else:
+                    if offsets[-1] + 31 > len(data):
+                        raise ValueError("message index offset past the chunk")
+                    lens = windows(u8, 8)[offsets + 1].copy().view("<u8").ravel().astype(np.int64) - 22
+                    if lens.min() < 0 or (offsets + 31 + lens).max() > len(data):
+                        raise ValueError("message record length past the chunk")
+                    if (lens == lens[0]).all():
+                        out[cid].append(windows(u8, int(lens[0]))[offsets + 31])  # rows gathered, index per row only
+                    else:
+                        mv = memoryview(data)
+                        out[cid].extend(mv[o + 31:o + 31 + n] for o, n in zip(offsets.tolist(), lens.tolist()))
+        return out
+
+    def _scanned_message_data(self, wanted: Callable[[Channel], bool]) -> dict[int, list]:
+        from mcap.data_stream import ReadDataStream
+
+        out: dict[int, list] = {}
+        keep: set[int] = set()
+        unpack_head = _RECORD_HEAD.unpack_from
+        unpack_ch = _CHANNEL_ID.unpack_from
+        for op, body in self._top():
+            if op != _OP_CHUNK:
+                if op == OP_MESSAGE:
+                    ch = unpack_ch(body, 0)[0]
+                    if ch in keep:
+                        out[ch].append(memoryview(body)[22:])
+                    continue
+                try:
+                    rec = _parse(op, body)
+                except Exception as e:  # noqa: BLE001
+                    self.problems.append(f"unreadable record (opcode 0x{op:02x}): {type(e).__name__}: {e}")
+                    continue
+                self._note(rec)
+                if isinstance(rec, Channel) and wanted(rec):
+                    keep.add(rec.id)
+                    out.setdefault(rec.id, [])
+                continue
+            try:
+                chunk = _parse(op, body)
+                data = _decompress(chunk)
+            except Exception as e:  # noqa: BLE001
+                self.problems.append(f"skipped a damaged chunk: {type(e).__name__}: {e}")
+                continue
+            mv = memoryview(data)
+            n = len(data)
+            pos = 0
+            while pos + 9 <= n:
+                rop, length = unpack_head(data, pos)
+                stop = pos + 9 + length
+                if stop > n:
+                    self.problems.append(f"a chunk's record at byte {pos} runs past its end; rest of chunk skipped")
+                    break
+                if rop == OP_MESSAGE:
+                    if length >= 22:
+                        ch = unpack_ch(data, pos + 9)[0]
+                        if ch in keep:
+                            out[ch].append(mv[pos + 31:stop])
+                elif rop == OP_SCHEMA or rop == OP_CHANNEL:
+                    rec = (Schema if rop == OP_SCHEMA else Channel).read(ReadDataStream(io.BytesIO(data[pos + 9:stop])))
                     self._note(rec)
-                    yield ("rec", rec)
+                    if rop == OP_CHANNEL and wanted(rec):
+                        keep.add(rec.id)
+                        out.setdefault(rec.id, [])
+                pos = stop
+        return out
 
     def records(self) -> Iterator:
         """Every record (chunks opened, messages as ``mcap`` Message records) in file order."""
@@ -270,6 +402,20 @@ class ChannelColumns:
     columns: dict[str, Any]
 
 
+def _count(parts: list) -> int:
+    return sum(len(p) if getattr(p, "ndim", 1) == 2 else 1 for p in parts)
+
+
+def _split_rows(parts: list) -> list:
+    out = []
+    for p in parts:
+        if getattr(p, "ndim", 1) == 2:
+            out.extend(p[i].tobytes() for i in range(len(p)))
+        else:
+            out.append(p)
+    return out
+
+
 def read_columns(path: str | Path) -> dict[str, ChannelColumns]:
     """Every decoded-sample channel of a take as arrays, by topic — the fast way to hand a take to
     the pipeline (a channel whose messages differ in layout is decoded message by message and
@@ -277,10 +423,7 @@ def read_columns(path: str | Path) -> dict[str, ChannelColumns]:
     import numpy as np
 
     r = TakeReader(path)
-    datas: dict[int, list] = {}
-    for item in r._items():
-        if item[0] == "msg":
-            datas.setdefault(item[1], []).append(item[5])
+    datas = r.message_data(lambda ch: ch.message_encoding == schemas.MESSAGE_ENCODING)
     classes = schemas.sample_classes()
     out = {}
     for cid, ds in datas.items():
@@ -289,9 +432,11 @@ def read_columns(path: str | Path) -> dict[str, ChannelColumns]:
             continue
         sc = r.schemas[ch.schema_id]
         layout = schemas.parse_definition(sc.name, sc.data.decode(), classes)
+        if not ds:
+            continue
         cols = schemas.decode_columns(layout, ds)
         if cols is None:
-            samples = [schemas.decode(layout, d) for d in ds]
+            samples = [schemas.decode(layout, bytes(d)) for d in _split_rows(ds)]
             cols = {}
             for f in layout.fields:
                 vals = [getattr(s, f.name) for s in samples]
@@ -301,7 +446,7 @@ def read_columns(path: str | Path) -> dict[str, ChannelColumns]:
                                                      np.asarray(vals) if f.kind != "array" else vals)  # fmt: skip
         md = dict(ch.metadata)
         out[ch.topic] = ChannelColumns(ch.topic, md.get("source", ""), md.get("entity", ""), layout.cls.__name__, md,
-                                       len(ds), cols)  # fmt: skip
+                                       _count(ds), cols)  # fmt: skip
     return out
 
 

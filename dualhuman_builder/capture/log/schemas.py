@@ -359,18 +359,27 @@ def decode_columns(layout: Layout, datas: list) -> dict[str, Any] | None:
     one by one)."""
     if not datas:
         return None
-    n0 = len(datas[0])
-    if any(len(d) != n0 for d in datas):
+    blocks = []
+    for d in datas:  # 2-D uint8 arrays (rows of equal-length messages) or single messages
+        blocks.append(d if getattr(d, "ndim", 1) == 2 else np.frombuffer(d, dtype=np.uint8)[None, :])
+    n0 = blocks[0].shape[1]
+    if any(b.shape[1] != n0 for b in blocks):
         return None
-    dt = message_dtype(layout, datas[0])
-    rows = np.frombuffer(b"".join(datas), dtype=dt)
+    raw = np.ascontiguousarray(np.concatenate(blocks) if len(blocks) > 1 else blocks[0])
+    dt = message_dtype(layout, raw[0].tobytes())
+    rows = raw.view(dt).ravel()
     out: dict[str, Any] = {}
     for f in layout.fields:
         if f.kind in ("str", "strs"):
             col = rows[f.name + "__raw"]
-            if not (col == col[0]).all():
+            if (col == col[0]).all():
+                out[f.name] = getattr(decode(layout, raw[0].tobytes()), f.name)
+            elif f.kind == "str":  # same length, different text (e.g. time codes): an array of str
+                width = col.dtype.itemsize
+                text = np.ascontiguousarray(col).view(np.uint8).reshape(-1, width)[:, 4:]
+                out[f.name] = np.char.decode(np.ascontiguousarray(text).view(f"S{width - 4}").ravel(), "utf-8")
+            else:
                 return None
-            out[f.name] = getattr(decode(layout, datas[0]), f.name)
         elif f.kind == "array":
             head, tail = rows[f.name + "__head"], rows[f.name + "__tail"]
             if not ((head == head[0]).all() and (tail == tail[0]).all()):
