@@ -5,6 +5,14 @@ Sources are named by URL, one handler per scheme (as pyserial names ports):
 over serial), ``mti+can://virtual/0`` (MTi-600 over CAN), ``vive+udp://:8051`` (VIVE bridge),
 ``vive+usb://`` (VIVE tracker HID) and ``sim://handshake?seed=3`` (simulated devices that speak
 the real wire formats). Every sample keeps the device timestamp and the host's monotonic receive
-time in nanoseconds. The adapters, recording and replay come with a later issue;
-:mod:`.backends` already probes which transports can open on this machine.
+time in nanoseconds.
+
+* :mod:`.sources` — the Source / Decoder interface and the scheme registry; one module per
+  device family (:mod:`.mvn_udp`, :mod:`.vive_udp`, :mod:`.xbus_serial`, :mod:`.mti_can`,
+  :mod:`.vive_usb`, :mod:`.sim_source`), wire formats in :mod:`.wire`;
+* :mod:`.recorder` and :mod:`.session` — recording takes (live status, clean stops);
+  :mod:`.log` — take files (MCAP): writing, reading, check, repair, dump;
+* :mod:`.replay` — samples back to the pipeline, or raw packets back onto the wire;
+* :mod:`.importers` — MVNX and BVH files;
+* :mod:`.backends` — which transports can open on this machine (used by ``dualhuman doctor``).
 """

@@ -30,7 +30,7 @@ VALVE_PRODUCTS = {0x2022: "VIVE Tracker", 0x2300: "VIVE Tracker v2", 0x2101: "Wa
 ARPHRD_CAN = 280
 
 _PAYLOAD = bytes(range(256))  # every byte value, so a text-mode or CR/LF-translating path shows up
-_UDEV_RULE = 'SUBSYSTEM=="usb", ATTRS{idVendor}=="28de", MODE="0666"'
+UDEV_RULE = 'SUBSYSTEM=="usb", ATTRS{idVendor}=="28de", MODE="0666"'
 
 
 @dataclass
@@ -320,7 +320,7 @@ def probe_vive_usb() -> BackendProbe:
     if any(problem == "permission denied" for _, _, problem in devices):
         return BackendProbe(
             name, False, f"{listed}",
-            f"allow access with a udev rule: echo '{_UDEV_RULE}' | sudo tee /etc/udev/rules.d/60-vive.rules "
+            f"allow access with a udev rule: echo '{UDEV_RULE}' | sudo tee /etc/udev/rules.d/60-vive.rules "
             "&& sudo udevadm control --reload-rules && sudo udevadm trigger, then replug",
         )
     if any(problem for _, _, problem in devices):

@@ -109,17 +109,22 @@ class Recorder:
     """Records ``sources`` (``[(name, Source), ...]``, opened) into ``path`` as take ``take``.
 
     ``actors``: the rig's actors (bindings and the per-actor live status); ``rig_text``: stored as
-    metadata; ``foxglove_hz``, ``flush_s``, ``chunk_size``: see :class:`TakeWriter`."""
+    metadata; ``foxglove_hz``, ``flush_s``, ``chunk_size``: see :class:`TakeWriter`; ``gather_s``:
+    how long a reader lets packets accumulate before handing them to the writer (default 10 ms;
+    the source's buffers must hold that much: a UDP socket holds 8 MiB, a pty 4 KiB or more)."""
 
     def __init__(self, path: str | Path, *, take: str, sources: Sequence[tuple[str, Source]],
                  actors: Sequence[RigActor] = (), rig_text: str | None = None, foxglove_hz: float = 60.0,
-                 flush_s: float = 1.0, chunk_size: int = 1 << 20, extra_meta: dict[str, str] | None = None):  # fmt: skip
+                 flush_s: float = 1.0, chunk_size: int = 1 << 20, extra_meta: dict[str, str] | None = None,
+                 gather_s: float = 0.01):  # fmt: skip
         if not sources:
             raise SourceError("nothing to record: no sources", fix="give --rig or at least one --source")
         names = [n for n, _ in sources]
         if len(set(names)) != len(names):
             raise SourceError(f"source names repeat: {names}", fix="name each source once")
         self.take = take
+        #: Seconds a reader thread lets packets accumulate after the first before handing them over.
+        self.gather_s = float(gather_s)
         self.sources = list(sources)
         self.actors = list(actors)
         for _, src in self.sources:
@@ -131,6 +136,8 @@ class Recorder:
         self._stop = threading.Event()
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._threads: list[threading.Thread] = []
+        #: CPU seconds each reader thread used (filled as they end): where a take's CPU goes.
+        self.thread_cpu_s: dict[str, float] = {}
         self._packets = Counter()
         self._samples = Counter()
         self._last_sample_ns: dict[int, int] = {}
@@ -148,10 +155,25 @@ class Recorder:
 
     # ------------------------------------------------------------------ threads
     def _reader(self, index: int, src: Source) -> None:
+        try:
+            self._read_loop(index, src)
+        finally:
+            self.thread_cpu_s[f"read-{self.sources[index][0]}"] = time.thread_time()
+
+    def _read_loop(self, index: int, src: Source) -> None:
         q = self._queue
+        gather = self.gather_s
         while not self._stop.is_set():
             try:
                 packets = src.read(0.05)
+                if packets and gather > 0:
+                    # let more arrive (the kernel, pty or bus buffers them) and hand over one batch:
+                    # fewer thread wake-ups and queue items per packet, at 1x and at 20x alike
+                    time.sleep(gather)
+                    more = src.read(0.0)
+                    while more:
+                        packets += more
+                        more = src.read(0.0) if len(more) >= 64 else None
             except SourceLost as e:
                 q.put((index, e))
                 return

@@ -24,7 +24,7 @@ from collections import deque
 
 import numpy as np
 
-from dualhuman_builder.capture.backends import _UDEV_RULE
+from dualhuman_builder.capture.backends import UDEV_RULE
 from dualhuman_builder.capture.samples import ImuSample
 from dualhuman_builder.capture.sources import (Decoder, RawPacket, Source, SourceError, SourceLost, now_ns,
                                                number_param, parse_source_url)  # fmt: skip
@@ -141,7 +141,7 @@ def _options(url: str, params: tuple[str, ...]) -> tuple[str | None, float]:
 def _permission_error(what: str) -> SourceError:
     return SourceError(
         f"permission denied opening {what}",
-        fix=f"allow access with a udev rule: echo '{_UDEV_RULE}' | sudo tee /etc/udev/rules.d/60-vive.rules "
+        fix=f"allow access with a udev rule: echo '{UDEV_RULE}' | sudo tee /etc/udev/rules.d/60-vive.rules "
         "&& sudo udevadm control --reload-rules && sudo udevadm trigger, then replug the device",
     )
 

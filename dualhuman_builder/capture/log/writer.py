@@ -232,7 +232,7 @@ class TakeWriter:
         topic = f"{name}/{entity}/{type(sample).__name__}"
         cid = self._guard(self._w.register_channel, topic, schemas.MESSAGE_ENCODING, sid, meta)
         self.topics[cid] = topic
-        return cid, schemas.make_encoder(layout)
+        return cid, schemas.make_shaped_encoder(layout, sample)
 
     def samples_per_topic(self) -> Counter:
         """Decoded samples written so far, by topic."""

@@ -1,7 +1,8 @@
-"""Wire formats of the capture devices: encoders from typed samples to the bytes devices send.
+"""Wire formats of the capture devices: encoders (typed samples -> the bytes devices send, used
+by the simulated devices) and decoders (bytes -> typed samples, used by the capture sources).
 
 One module per device family, each following ``shared/reference/capture-protocols.md`` byte for
-byte (the capture sources decode the same layouts):
+byte:
 
 * :mod:`.mvn` — Xsens MVN real-time network stream ("MXTP" UDP datagrams, big-endian): pose
   quaternions (type 02), meta data (12), scale (13), time code (25); several characters on one
@@ -9,6 +10,7 @@ byte (the capture sources decode the same layouts):
 * :mod:`.xbus` — Xsens MTi "Xbus" serial frames (MTData2 records, configuration messages) and
   :class:`~.xbus.SimulatedMti`, the device's side of the configuration dialogue.
 * :mod:`.mti_can` — MTi-600 CAN frames (big-endian scaled int16 signals) as python-can messages.
+* :mod:`.vive_hid` — the VIVE tracker's raw USB HID IMU report (three samples per report).
 * :mod:`.vive_udp` — our tracker bridge datagram (little-endian), the format an OpenVR or
   libsurvive bridge sends us.
 
