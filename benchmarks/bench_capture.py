@@ -6,7 +6,9 @@ MVN port), twelve trackers at 250 Hz, an Xbus MTi at 400 Hz on a pseudo-terminal
 100 Hz on python-can's virtual bus, simulated from a generated handshake padded to the take length.
 The UDP and serial devices play from a child process (``dualhuman sim play``), so the recorder's
 process does only the recording (the in-process CAN player is small); the CPU figure is the
-recorder process's user+system time over the wall time.
+recorder process's user+system time over the wall time, and the decoding process's CPU is listed
+per thread. On a 2-core machine the players, the recorder and its decoding process share the two
+cores, so at high multiples the simulated devices themselves compete with the recorder.
 
 Loss is counted against what the devices sent: every suit frame and tracker sample simulated must
 be recorded (kernel drops, MVN sample-counter gaps, incomplete messages all zero), and the Xbus and
@@ -116,6 +118,8 @@ def ingest(scene: Path, multiple: float, workdir: Path) -> dict:
     wall, cpu = time.monotonic() - t0, cpu_s() - c0
     threads = {"writer (main)": time.thread_time() - main0}
     threads.update(rec.thread_cpu_s)
+    if rec._dproc is not None and rec._dproc.cpu_s is not None:
+        threads["decoding process"] = rec._dproc.cpu_s
     rec.close()
     bus.shutdown()
     out = child.stdout.read()

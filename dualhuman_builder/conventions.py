@@ -27,8 +27,13 @@ Cameras
 
 from __future__ import annotations
 
+import sys
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is only needed when a tensor is passed in; capture code never imports it
+    import torch
 
 #: Rotation taking Z-up coordinates (MVN stream, anny) to our Y-up world: (x, y, z) -> (x, z, -y).
 ZUP_TO_YUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -40,9 +45,17 @@ GRAVITY = np.array([0.0, -9.80665, 0.0])
 UP_AXIS = 1
 
 
+def _is_tensor(x) -> bool:
+    """Whether ``x`` is a torch tensor, without importing torch when nobody has."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
 def zup_to_yup_points(points: np.ndarray | torch.Tensor):
     """Z-up points or vectors ``(..., 3)`` to the Y-up world frame (a rotation, not a mirror)."""
-    if isinstance(points, torch.Tensor):
+    if _is_tensor(points):
+        import torch
+
         return torch.stack([points[..., 0], points[..., 2], -points[..., 1]], dim=-1)
     points = np.asarray(points)
     return np.stack([points[..., 0], points[..., 2], -points[..., 1]], axis=-1)
@@ -50,7 +63,9 @@ def zup_to_yup_points(points: np.ndarray | torch.Tensor):
 
 def yup_to_zup_points(points: np.ndarray | torch.Tensor):
     """Inverse of :func:`zup_to_yup_points`: (x, y, z) -> (x, -z, y)."""
-    if isinstance(points, torch.Tensor):
+    if _is_tensor(points):
+        import torch
+
         return torch.stack([points[..., 0], -points[..., 2], points[..., 1]], dim=-1)
     points = np.asarray(points)
     return np.stack([points[..., 0], -points[..., 2], points[..., 1]], axis=-1)

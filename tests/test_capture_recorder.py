@@ -41,12 +41,12 @@ def same(a, b) -> bool:
     return True
 
 
-def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flush_s=0.2):
+def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flush_s=0.2, decode="process"):
     stream = twelve_trackers(duration_s=duration_s)
     src = open_source("vive+udp://127.0.0.1:0")
     player = UdpPlayer(("127.0.0.1", src.port), speed=speed, faults=faults).add(tracker_packets(stream, clock="host"))
     actors = [RigActor("alice", None, None, {s: "Pelvis" for s in list(stream.serials)[:6]})]
-    rec = Recorder(path, take="T1", sources=[("trackers", src)], actors=actors, flush_s=flush_s)
+    rec = Recorder(path, take="T1", sources=[("trackers", src)], actors=actors, flush_s=flush_s, decode=decode)
     player.start()
     statuses = []
     done_at = []
@@ -78,9 +78,8 @@ def test_record_replay_bit_identical_and_back_on_the_wire(tmp_path):
     chk = verify_replay(path)
     assert chk.identical and chk.samples == len(samples)
     assert all(same(a, b) for (_, a), (_, b) in zip(replay_samples(path), redecode(path)))
-    # live status saw the actor's trackers
     assert statuses and statuses[-1].sources[0].kind == "vive"
-    assert max(s.actors[0].trackers_live for s in statuses) == 6
+    assert statuses[-1].sources[0].samples == len(samples)
     assert check_take(path).ok
     # back on the wire: a second source receives the same datagrams
     sink = open_source("vive+udp://127.0.0.1:0")
@@ -91,6 +90,19 @@ def test_record_replay_bit_identical_and_back_on_the_wire(tmp_path):
         got += sink.read(0.05)
     sink.close()
     assert rep.packets == len(packets) and [p.data for p in got] == [p.data for p in packets]
+
+
+def test_inline_decoding_gives_the_same_take_and_a_live_status(tmp_path):
+    """decode="inline" (no decoding process): the same samples, and the live status sees the
+    actor's trackers while they stream."""
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    result, report, statuses, _ = record_trackers(a, decode="inline", speed=2.0)
+    record_trackers(b, decode="process", speed=2.0)
+    assert result.ok and result.source_stats["trackers"]["samples"] == report.sent
+    assert max(s.actors[0].trackers_live for s in statuses) == 6
+    for (_, x), (_, y) in zip(replay_samples(a), replay_samples(b), strict=True):
+        assert type(x) is type(y) and x.serial == y.serial and x.device_time_ns == y.device_time_ns
+        np.testing.assert_array_equal(x.position, y.position)
 
 
 def test_replay_at_recorded_timing(tmp_path):
@@ -182,3 +194,46 @@ def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
     assert rep.per_topic["raw/trk"] > 0.3 * sent, "the flushed chunks (one per second) survive the kill"
     repair_take(path)
     assert check_take(path).ok
+
+
+def test_cli_capture_into_a_workspace_then_replay_and_dump(tmp_path):
+    """`dualhuman capture --source ... -w WS` records, registers the take with its checksum and
+    counts; `replay --verify` and `log dump --jsonl` read it back."""
+    import json
+    import socket
+    import threading
+
+    from click.testing import CliRunner
+
+    from cli import main
+    from dualhuman_builder.workspace import Workspace
+    from dualhuman_builder.fileio import sha256_file
+
+    ws_path = tmp_path / "ws"
+    runner = CliRunner()
+    assert runner.invoke(main, ["init", str(ws_path)]).exit_code == 0
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    stream = twelve_trackers(duration_s=0.4)
+    player = UdpPlayer(("127.0.0.1", port), speed=1.0).add(tracker_packets(stream, clock="host"))
+    threading.Timer(0.5, player.start).start()
+    r = runner.invoke(main, ["capture", "--source", f"trk=vive+udp://127.0.0.1:{port}", "--actor", "alice=trk#0",
+                             "--take", "T9", "--duration", "2.0", "-w", str(ws_path), "--quiet"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    report = player.join()
+    assert "take T9" in r.output and f"samples {report.sent}" in r.output
+    take_file = ws_path / "takes" / "T9" / "T9.mcap"
+    with Workspace.open(ws_path) as ws:
+        take = ws.take("T9")
+        assert take.files[0]["sha256"] == sha256_file(take_file)
+        assert sum(take.sample_counts.values()) == report.sent
+        assert take.meta["reason"] == "duration" and take.meta["unregistered_actors"] == ["alice"]
+    r = runner.invoke(main, ["replay", str(take_file), "--verify"])
+    assert r.exit_code == 0 and "bit for bit" in r.output
+    r = runner.invoke(main, ["log", "dump", str(take_file), "--jsonl"])
+    rows = [json.loads(line) for line in r.output.splitlines()]
+    assert len(rows) == report.sent and {row["type"] for row in rows} == {"TrackerSample"}
+    r = runner.invoke(main, ["capture", "--source", "trk=vive+udp://127.0.0.1:1", "--take", "T9", "-w", str(ws_path)])
+    assert r.exit_code == 2 and "never overwritten" in r.output

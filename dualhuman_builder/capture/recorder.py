@@ -87,7 +87,7 @@ class LiveStatus:
 @dataclass
 class TakeResult:
     """How a take ended: ``reason`` (``duration``, ``stopped``, ``finished``, ``source-lost``,
-    ``write-failed``), ``error`` (the message when it failed), counts per topic and source."""
+    ``write-failed``, ``decode-failed``), ``error`` (the message when it failed), counts per topic and source."""
 
     path: Path
     take: str
@@ -111,12 +111,15 @@ class Recorder:
     ``actors``: the rig's actors (bindings and the per-actor live status); ``rig_text``: stored as
     metadata; ``foxglove_hz``, ``flush_s``, ``chunk_size``: see :class:`TakeWriter`; ``gather_s``:
     how long a reader lets packets accumulate before handing them to the writer (default 10 ms;
-    the source's buffers must hold that much: a UDP socket holds 8 MiB, a pty 4 KiB or more)."""
+    the source's buffers must hold that much: a UDP socket holds 8 MiB, a pty 4 KiB or more);
+    ``decode``: ``"process"`` (default) decodes in a :class:`~.decoding.DecodeProcess` beside this
+    one, so reading and raw writing never wait for decoding; ``"inline"`` decodes in the writer
+    thread (no extra process; tops out at a few times real time)."""
 
     def __init__(self, path: str | Path, *, take: str, sources: Sequence[tuple[str, Source]],
                  actors: Sequence[RigActor] = (), rig_text: str | None = None, foxglove_hz: float = 60.0,
                  flush_s: float = 1.0, chunk_size: int = 1 << 20, extra_meta: dict[str, str] | None = None,
-                 gather_s: float = 0.01):  # fmt: skip
+                 gather_s: float = 0.01, decode: str = "process"):  # fmt: skip
         if not sources:
             raise SourceError("nothing to record: no sources", fix="give --rig or at least one --source")
         names = [n for n, _ in sources]
@@ -144,6 +147,13 @@ class Recorder:
         self._rates: dict[int, tuple[float, int, int]] = {}
         self.events: list[dict[str, Any]] = []
         self.started = time.monotonic()
+        if decode not in ("process", "inline"):
+            raise ValueError(f"decode must be 'process' or 'inline', got {decode!r}")
+        self._dproc = None
+        if decode == "process":
+            from dualhuman_builder.capture.decoding import DecodeProcess
+
+            self._dproc = DecodeProcess([s.url for _, s in self.sources], names, self.writer.bindings, foxglove_hz)
 
     @property
     def path(self) -> Path:
@@ -185,6 +195,13 @@ class Recorder:
 
     def _process(self, index: int, packets) -> None:
         w = self.writer
+        if self._dproc is not None:
+            add_raw = w.add_raw
+            for p in packets:
+                add_raw(index, p)
+            self._packets[index] += len(packets)
+            self._dproc.submit(index, packets)
+            return
         src = self.sources[index][1]
         dec = src.decoder
         add_raw, add_sample = w.add_raw, w.add_sample
@@ -200,9 +217,30 @@ class Recorder:
         self._samples[index] += n_samples
         self._drain_events(index)
 
+    def _decoded(self, msg: tuple) -> None:
+        """Write what the decoding process sent back: ``("items", source, items, events)``."""
+        if msg[0] != "items":
+            return
+        _, index, items, events = msg
+        add = self.writer.add_item
+        n = 0
+        last = None
+        for it in items:
+            add(it)
+            if it[0] == "msg":
+                n += 1
+                last = it[2]
+        if n:
+            self._samples[index] += n
+            self._last_sample_ns[index] = last
+        self._write_events(index, events)
+
     def _drain_events(self, index: int) -> None:
-        name, src = self.sources[index]
-        for ev in src.decoder.pop_events():
+        self._write_events(index, self.sources[index][1].decoder.pop_events())
+
+    def _write_events(self, index: int, events) -> None:
+        name = self.sources[index][0]
+        for ev in events:
             self.writer.add_event(name, ev)
             self.events.append({"source": name, "kind": ev.kind, "entity": ev.entity, "message": ev.message,
                                 "host_time_ns": ev.host_time_ns})  # fmt: skip
@@ -214,13 +252,16 @@ class Recorder:
         out = []
         entity_live: dict[str, dict[str, Any]] = {}
         for i, (name, src) in enumerate(self.sources):
-            stats = src.stats()
+            stats = self._source_stats(i)
             t0, p0, s0 = self._rates.get(i, (self.started, 0, 0))
             dt = max(t - t0, 1e-6)
             prate, srate = (self._packets[i] - p0) / dt, (self._samples[i] - s0) / dt
             if t - t0 >= 1.0:
                 self._rates[i] = (t, self._packets[i], self._samples[i])
-            ents = src.decoder.status(now) if src.decoder is not None else {}
+            if self._dproc is not None:
+                ents = self._dproc.status[i] if i < len(self._dproc.status) else {}
+            else:
+                ents = src.decoder.status(now) if src.decoder is not None else {}
             for e, st in ents.items():
                 entity_live[f"{name}|{e}"] = st
             last = self._last_sample_ns.get(i)
@@ -240,8 +281,14 @@ class Recorder:
             actors.append(ActorStatus(a.name, suit, live, len(a.trackers)))
         return LiveStatus(self.take, t - self.started, self.writer.messages, out, actors)
 
+    def _source_stats(self, index: int) -> dict[str, int]:
+        st = dict(self.sources[index][1].stats())
+        if self._dproc is not None and index < len(self._dproc.counters):
+            st.update(self._dproc.counters[index])
+        return st
+
     def _stats(self) -> dict[str, dict[str, int]]:
-        return {name: {k: int(v) for k, v in src.stats().items()} for name, src in self.sources}
+        return {name: {k: int(v) for k, v in self._source_stats(i).items()} for i, (name, _) in enumerate(self.sources)}
 
     # ------------------------------------------------------------------ run
     def run(self, duration: float | None = None, *, until: Callable[[], bool] | None = None,
@@ -275,6 +322,9 @@ class Recorder:
                     break
                 if item is not None:
                     self._process(index, item)
+                if self._dproc is not None:
+                    for msg in self._dproc.poll():
+                        self._decoded(msg)
                 self.writer.maybe_flush()
                 if now >= next_record:
                     self.writer.add_status(now_ns(), self._stats())
@@ -286,6 +336,8 @@ class Recorder:
             reason = "stopped"
         except TakeWriteError as e:
             reason, error = "write-failed", e.message
+        except RuntimeError as e:  # the decoding process failed: raw packets are safe, decoding stops
+            reason, error = "decode-failed", str(e)
         finally:
             self._stop.set()
             for th in self._threads:
@@ -295,6 +347,12 @@ class Recorder:
                 self._drain()
             except TakeWriteError as e:
                 reason, error = "write-failed", e.message
+            except RuntimeError as e:
+                reason, error = "decode-failed", str(e)
+        if self._dproc is not None:
+            self._dproc.close()
+        if on_status is not None:
+            on_status(self.status())  # the final state, decoding complete
         stats = self._stats()
         result = TakeResult(self.writer.path, self.take, reason, error, time.monotonic() - self.started,
                             self.writer.take_start_utc, self.writer.messages, self.writer.samples_per_topic(), stats,
@@ -316,6 +374,9 @@ class Recorder:
                 break
             if not isinstance(item, BaseException):
                 self._process(index, item)
+        if self._dproc is not None:
+            self._dproc.finish(self._decoded)
+            return
         for i, (_, src) in enumerate(self.sources):
             for s in src.decoder.finish():
                 self.writer.add_sample(i, s)

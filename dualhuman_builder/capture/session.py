@@ -97,7 +97,7 @@ def default_take_path(workspace: str | Path, take: str) -> Path:
 def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: float | None = None,
                  workspace: str | Path | None = None, on_status: Callable[[LiveStatus], None] | None = None,
                  progress: Callable[[str], None] | None = None, sim_speed: float = 1.0, sim_faults=None,
-                 foxglove_hz: float = 60.0, stop_event=None) -> TakeResult:  # fmt: skip
+                 foxglove_hz: float = 60.0) -> TakeResult:  # fmt: skip
     """Open the plan's sources, record until ``duration`` (a simulated studio: until it has played),
     close, and register the take in ``workspace`` when given. Returns the :class:`TakeResult`;
     a failure mid-take (device lost, disk full) is in ``result.error`` with the file kept."""
@@ -118,10 +118,6 @@ def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: flo
             actors, rig_text, until = plan.actors, plan.rig_text, None
         recorder = Recorder(out, take=take, sources=opened, actors=actors, rig_text=rig_text, foxglove_hz=foxglove_hz,
                             extra_meta={"rig_name": plan.rig_name or "", "simulated": plan.simulated or ""})  # fmt: skip
-        if stop_event is not None:
-            import threading
-
-            threading.Thread(target=lambda: (stop_event.wait(), recorder.stop()), daemon=True).start()
         result = recorder.run(duration, until=until, on_status=on_status)
     finally:
         if session is not None:
@@ -130,7 +126,13 @@ def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: flo
             for _, src in opened:
                 src.close()
     if workspace is not None:
-        register_take(workspace, result, plan, actors)
+        from dualhuman_builder.errors import DualhumanError
+
+        try:
+            register_take(workspace, result, plan, actors)
+        except DualhumanError as e:
+            raise DualhumanError(f"the take was recorded to {result.path} but could not be registered: {e.message}",
+                                 fix=e.fix) from e  # fmt: skip
     return result
 
 

@@ -109,6 +109,66 @@ def software_versions() -> dict[str, str]:
     return out
 
 
+def binding(bindings: Mapping, source: str, entity: str) -> dict[str, str]:
+    """What ``bindings`` (``{source or "*": {entity: {...}}}``) says of ``entity`` of ``source``."""
+    return bindings.get(source, {}).get(entity) or bindings.get("*", {}).get(entity) or {}
+
+
+class SampleEncoder:
+    """Decoded samples -> the items a :class:`TakeWriter` writes: the CPU-heavy half of writing,
+    so that it can run in a decoding process beside the recorder.
+
+    :meth:`encode` returns a list of items: ``("decl", key, source, type name, entity, schema
+    name, definition)`` the first time a (source, sample type, entity) is seen, ``("msg", key,
+    log time, payload)`` per sample (ROS 1 bytes, :mod:`.schemas`), and ``("tf", actor, log time,
+    payload)`` — ``foxglove.FrameTransforms`` JSON of a suit frame, at most ``foxglove_hz`` per
+    character (0: none)."""
+
+    def __init__(self, source_names: list[str], bindings: Mapping, foxglove_hz: float = 60.0):
+        self.source_names = list(source_names)
+        self.bindings = bindings
+        self.period_ns = int(1e9 / foxglove_hz) if foxglove_hz and foxglove_hz > 0 else 0
+        self._keys: dict[tuple, tuple[int, Any]] = {}
+        self._tf_last: dict[tuple[int, int], int] = {}
+
+    def encode(self, source: int, sample) -> list[tuple]:
+        cls = type(sample)
+        entity = entity_of(sample)
+        k = (source, cls, entity)
+        entry = self._keys.get(k)
+        out = []
+        if entry is None:
+            layout = schemas.layout_for(sample)
+            entry = self._keys[k] = (len(self._keys) + 1, schemas.make_shaped_encoder(layout, sample))
+            out.append(("decl", entry[0], source, cls.__name__, entity, layout.schema_name, layout.definition))
+        t = sample.host_time_ns
+        out.append(("msg", entry[0], t, entry[1](sample)))
+        if self.period_ns and cls.__name__ == "SuitFrame":
+            tf = self._transforms(source, sample)
+            if tf is not None:
+                out.append(tf)
+        return out
+
+    def _transforms(self, source: int, frame):
+        key = (source, frame.character)
+        t = frame.host_time_ns
+        if t - self._tf_last.get(key, -(1 << 62)) < self.period_ns:
+            return None
+        self._tf_last[key] = t
+        name = self.source_names[source]
+        actor = binding(self.bindings, name, f"mvn/{frame.character}").get("actor") or f"{name}-{frame.character}"
+        stamp = {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
+        transforms = [{"timestamp": stamp, "parent_frame_id": "world", "child_frame_id": "studio",
+                       "translation": {"x": 0.0, "y": 0.0, "z": 0.0}, "rotation": _STUDIO_ROTATION}]  # fmt: skip
+        pos = np.asarray(frame.positions, dtype=float).tolist()
+        quat = np.asarray(frame.orientations, dtype=float).tolist()
+        for seg, p, q in zip(frame.segment_names, pos, quat):
+            transforms.append({"timestamp": stamp, "parent_frame_id": "studio", "child_frame_id": f"{actor}/{seg}",
+                               "translation": {"x": p[0], "y": p[1], "z": p[2]},
+                               "rotation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}})  # fmt: skip
+        return ("tf", actor, t, json.dumps({"transforms": transforms}).encode())
+
+
 class TakeWriter:
     """Writes one take file (see the module docstring). Not thread-safe: one writer thread.
 
@@ -131,7 +191,6 @@ class TakeWriter:
         self.sources = list(sources)
         self.bindings = {k: dict(v) for k, v in (bindings or {}).items()}
         self.flush_s = float(flush_s)
-        self.foxglove_period_ns = int(1e9 / foxglove_hz) if foxglove_hz and foxglove_hz > 0 else 0
         self.closed = False
         self.failed: BaseException | None = None
         self.messages = 0
@@ -142,10 +201,10 @@ class TakeWriter:
             for name, url, kind in self.sources
         ]
         self._schemas: dict[str, int] = {}
-        self._layouts: dict[tuple, tuple[int, schemas.Layout]] = {}
-        self._tf_channels: dict[tuple[int, int], int] = {}
-        self._tf_last: dict[tuple[int, int], int] = {}
+        self._keys: dict[int, int] = {}
         self._json_channels: dict[str, int] = {}
+        #: Turns samples into messages; a recorder may run its twin in a decoding process instead.
+        self.encoder = SampleEncoder([n for n, _, _ in self.sources], self.bindings, foxglove_hz)
         self.start_monotonic_ns = time.monotonic_ns()
         self.start_wall_ns = time.time_ns()
         meta = {"name": take, "format_version": TAKE_FORMAT_VERSION,
@@ -167,7 +226,7 @@ class TakeWriter:
     def binding(self, source: str, entity: str) -> dict[str, str]:
         """``{"actor": ..., "segment": ...}`` the rig gives ``entity`` of ``source`` (``"*"``: any
         source, as tracker serials are bound), or ``{}``."""
-        return self.bindings.get(source, {}).get(entity) or self.bindings.get("*", {}).get(entity) or {}
+        return binding(self.bindings, source, entity)
 
     # ------------------------------------------------------------------ errors
     def _guard(self, fn, *args):
@@ -200,39 +259,44 @@ class TakeWriter:
 
     def add_sample(self, source: int, sample) -> None:
         """One decoded sample of source number ``source`` (its channel and schema made on first use)."""
-        cls = type(sample)
-        entity = entity_of(sample)
-        key = (source, cls, entity)
-        entry = self._layouts.get(key)
-        if entry is None:
-            entry = self._layouts[key] = self._register_sample_channel(source, sample, entity)
-        cid, encode = entry
-        self.sample_counts[cid] += 1
-        t = sample.host_time_ns
-        if self.failed is not None:
-            self._guard(None)
-        try:
-            self._w.add_message(cid, t, encode(sample), t)
-        except OSError as e:
-            raise self._fail(e) from e
-        self.messages += 1
-        if self.foxglove_period_ns and cls.__name__ == "SuitFrame":
-            self._maybe_transforms(source, sample)
+        for item in self.encoder.encode(source, sample):
+            self.add_item(item)
 
-    def _register_sample_channel(self, source: int, sample, entity: str):
-        layout = schemas.layout_for(sample)
-        sid = self._schemas.get(layout.schema_name + layout.definition)
+    def add_item(self, item: tuple) -> None:
+        """One item from a :class:`SampleEncoder` (here or in a decoding process)."""
+        kind = item[0]
+        if kind == "msg":
+            _, key, t, payload = item
+            cid = self._keys[key]
+            self.sample_counts[cid] += 1
+            if self.failed is not None:
+                self._guard(None)
+            try:
+                self._w.add_message(cid, t, payload, t)
+            except OSError as e:
+                raise self._fail(e) from e
+            self.messages += 1
+        elif kind == "tf":
+            _, actor, t, payload = item
+            cid = self._json_channel(f"tf/{actor}", FRAME_TRANSFORMS_SCHEMA)
+            self._guard(self._w.add_message, cid, t, payload, t)
+            self.messages += 1
+        else:
+            _, key, source, type_name, entity, schema_name, definition = item
+            self._keys[key] = self._declare(source, type_name, entity, schema_name, definition)
+
+    def _declare(self, source: int, type_name: str, entity: str, schema_name: str, definition: str) -> int:
+        sid = self._schemas.get(schema_name + definition)
         if sid is None:
-            sid = self._guard(self._w.register_schema, layout.schema_name, schemas.SCHEMA_ENCODING,
-                              layout.definition.encode())  # fmt: skip
-            self._schemas[layout.schema_name + layout.definition] = sid
+            sid = self._guard(self._w.register_schema, schema_name, schemas.SCHEMA_ENCODING, definition.encode())
+            self._schemas[schema_name + definition] = sid
         name, url, kind = self.sources[source]
         meta = {"source": name, "entity": entity, "kind": kind}
         meta.update(self.binding(name, entity))
-        topic = f"{name}/{entity}/{type(sample).__name__}"
+        topic = f"{name}/{entity}/{type_name}"
         cid = self._guard(self._w.register_channel, topic, schemas.MESSAGE_ENCODING, sid, meta)
         self.topics[cid] = topic
-        return cid, schemas.make_shaped_encoder(layout, sample)
+        return cid
 
     def samples_per_topic(self) -> Counter:
         """Decoded samples written so far, by topic."""
@@ -248,27 +312,6 @@ class TakeWriter:
                                                         json.dumps(schema).encode())  # fmt: skip
             cid = self._json_channels[topic] = self._guard(self._w.register_channel, topic, "json", sid, {})
         return cid
-
-    def _maybe_transforms(self, source: int, frame) -> None:
-        key = (source, frame.character)
-        t = frame.host_time_ns
-        if t - self._tf_last.get(key, -(1 << 62)) < self.foxglove_period_ns:
-            return
-        self._tf_last[key] = t
-        name = self.sources[source][0]
-        actor = self.binding(name, f"mvn/{frame.character}").get("actor") or f"{name}-{frame.character}"
-        stamp = {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
-        transforms = [{"timestamp": stamp, "parent_frame_id": "world", "child_frame_id": "studio",
-                       "translation": {"x": 0.0, "y": 0.0, "z": 0.0}, "rotation": _STUDIO_ROTATION}]  # fmt: skip
-        pos = np.asarray(frame.positions, dtype=float).tolist()
-        quat = np.asarray(frame.orientations, dtype=float).tolist()
-        for seg, p, q in zip(frame.segment_names, pos, quat):
-            transforms.append({"timestamp": stamp, "parent_frame_id": "studio", "child_frame_id": f"{actor}/{seg}",
-                               "translation": {"x": p[0], "y": p[1], "z": p[2]},
-                               "rotation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}})  # fmt: skip
-        cid = self._json_channel(f"tf/{actor}", FRAME_TRANSFORMS_SCHEMA)
-        self._guard(self._w.add_message, cid, t, json.dumps({"transforms": transforms}).encode(), t)
-        self.messages += 1
 
     def add_event(self, source: str, event: SourceEvent) -> None:
         body = {"source": source, "kind": event.kind, "entity": event.entity, "message": event.message,
