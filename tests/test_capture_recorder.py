@@ -17,7 +17,8 @@ import pytest
 
 from dualhuman_builder.capture.log.reader import check_take, repair_take
 from dualhuman_builder.capture.recorder import Recorder
-from dualhuman_builder.capture.replay import redecode, replay_packets, replay_samples, replay_to, verify_replay
+from dualhuman_builder.capture.replay import (redecode, replay_packets, replay_samples, replay_to, same_sample,
+                                              verify_replay)  # fmt: skip
 from dualhuman_builder.capture.sources import open_source
 from dualhuman_builder.rig import RigActor
 from dualhuman_builder.sim.devices import Faults, UdpPlayer, tracker_packets
@@ -26,19 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from test_capture_vive import twelve_trackers  # noqa: E402
-
-
-def same(a, b) -> bool:
-    if type(a) is not type(b):
-        return False
-    for k, v in vars(a).items():
-        w = getattr(b, k)
-        if isinstance(v, np.ndarray):
-            if v.shape != w.shape or v.tobytes() != np.asarray(w, dtype=v.dtype).tobytes():
-                return False
-        elif v != w:
-            return False
-    return True
 
 
 def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flush_s=0.2, decode="process"):
@@ -77,7 +65,7 @@ def test_record_replay_bit_identical_and_back_on_the_wire(tmp_path):
     # re-decoding the raw bytes gives the recorded samples bit for bit
     chk = verify_replay(path)
     assert chk.identical and chk.samples == len(samples)
-    assert all(same(a, b) for (_, a), (_, b) in zip(replay_samples(path), redecode(path)))
+    assert all(same_sample(a, b) for (_, a), (_, b) in zip(replay_samples(path), redecode(path)))
     assert statuses and statuses[-1].sources[0].kind == "vive"
     assert statuses[-1].sources[0].samples == len(samples)
     assert check_take(path).ok

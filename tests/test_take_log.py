@@ -24,6 +24,7 @@ from dualhuman_builder.capture.log.reader import (TakeReader, check_take, dump_j
                                                   scan_take)  # fmt: skip
 from dualhuman_builder.capture.log.writer import TakeWriteError, TakeWriter
 from dualhuman_builder.capture.samples import ImuSample, SuitFrame, TrackerSample
+from dualhuman_builder.capture.replay import same_sample
 from dualhuman_builder.capture.sources import RawPacket
 from dualhuman_builder.errors import FormatError
 
@@ -49,19 +50,6 @@ def synthetic_samples(n: int = 200, seed: int = 0) -> list:
     return out
 
 
-def same(a, b) -> bool:
-    if type(a) is not type(b):
-        return False
-    for k, v in vars(a).items():
-        w = getattr(b, k)
-        if isinstance(v, np.ndarray):
-            if v.shape != w.shape or v.tobytes() != np.asarray(w, dtype=v.dtype).tobytes():
-                return False
-        elif v != w:
-            return False
-    return True
-
-
 def write_take(path: Path, samples, **kw) -> TakeWriter:
     w = TakeWriter(path, take="t", sources=[("suits", "mvn+udp://127.0.0.1:9763", "mvn")],
                    bindings={"suits": {"mvn/0": {"actor": "alice"}}, "*": {"vive/LHR-1": {"actor": "alice", "segment": "Head"}}},
@@ -77,7 +65,7 @@ def test_schema_round_trip_is_exact_and_definitions_are_ros1():
         layout = schemas.layout_for(s)
         data = schemas.encode(layout, s)
         back = schemas.decode(schemas.parse_definition(layout.schema_name, layout.definition, schemas.sample_classes()), data)
-        assert same(s, back)
+        assert same_sample(s, back)
         assert layout.schema_name == f"dualhuman/{type(s).__name__}"
     frame = synthetic_samples(1)[0]
     d = schemas.layout_for(frame).definition
@@ -106,7 +94,7 @@ def test_writer_reader_round_trip_and_mcap_library_reads_it(tmp_path):
     w = write_take(path, samples, chunk_size=16 << 10)
     w.close({"sources": {"suits": {"lost": 0}}})
     back = [s for _, s in TakeReader(path).samples()]
-    assert len(back) == len(samples) and all(same(a, b) for a, b in zip(samples, back))
+    assert len(back) == len(samples) and all(same_sample(a, b) for a, b in zip(samples, back))
     raw = [p for _, p in TakeReader(path).raw_packets()]
     assert [p.data for p in raw] == [bytes([i % 256]) * (i % 50) for i in range(len(samples))]
     assert [p.host_time_ns for p in raw] == [s.host_time_ns for s in samples]

@@ -57,7 +57,9 @@ def redecode(path: str | Path) -> Iterator[tuple[str, object]]:
             yield name, s
 
 
-def _same(a, b) -> bool:
+def same_sample(a, b) -> bool:
+    """Whether two samples are the same type with bit-identical fields (arrays compared by shape,
+    dtype and bytes, so NaNs compare equal to themselves)."""
     if type(a) is not type(b):
         return False
     for k, v in vars(a).items() if hasattr(a, "__dict__") else ():
@@ -95,7 +97,7 @@ def verify_replay(path: str | Path) -> ReplayCheck:
         if a is sentinel and b is sentinel:
             break
         n += 1
-        if a is sentinel or b is sentinel or a[0] != b[0] or not _same(a[1], b[1]):
+        if a is sentinel or b is sentinel or a[0] != b[0] or not same_sample(a[1], b[1]):
             bad += 1
             if first is None:
                 first = f"sample {n}: recorded {a if a is sentinel else (a[0], type(a[1]).__name__)} vs re-decoded " \

@@ -114,37 +114,49 @@ def layout_for(sample) -> Layout:
     return Layout(cls, SCHEMA_PREFIX + cls.__name__, tuple(fields))
 
 
+_SCALAR_CODES = {"int": "q", "float": "d", "bool": "?"}
+
+
+def _scalar_packer(run: list[FieldSpec]) -> Callable[[Any], bytes]:
+    st = struct.Struct("<" + "".join(_SCALAR_CODES[f.kind] for f in run))
+    get = operator.attrgetter(*(f.name for f in run))
+    if len(run) == 1:
+        return lambda s: st.pack(get(s))
+    return lambda s: st.pack(*get(s))
+
+
+def _field_groups(layout: Layout) -> list[tuple[str, Any]]:
+    """The fields in order, runs of fixed-size scalars merged: ``("scalars", packer)`` or
+    ``(kind, FieldSpec)`` for strings, string lists and arrays."""
+    out: list[tuple[str, Any]] = []
+    run: list[FieldSpec] = []
+    for f in layout.fields:
+        if f.kind in _SCALAR_CODES:
+            run.append(f)
+            continue
+        if run:
+            out.append(("scalars", _scalar_packer(run)))
+            run = []
+        out.append((f.kind, f))
+    if run:
+        out.append(("scalars", _scalar_packer(run)))
+    return out
+
+
 def make_encoder(layout: Layout) -> Callable[[Any], bytes]:
     """A function ``sample -> bytes`` for ``layout``, compiled once: runs of fixed-size scalar
     fields are packed by one ``struct`` call, arrays are copied only when not already
     little-endian and contiguous in the schema's element type."""
     ops: list[Callable[[Any], Any]] = []
-    run: list[FieldSpec] = []
-
-    def close_run() -> None:
-        if not run:
-            return
-        st = struct.Struct("<" + "".join({"int": "q", "float": "d", "bool": "?"}[f.kind] for f in run))
-        get = operator.attrgetter(*(f.name for f in run))
-        if len(run) == 1:
-            ops.append(lambda s, st=st, get=get: st.pack(get(s)))
+    for kind, x in _field_groups(layout):
+        if kind == "scalars":
+            ops.append(x)
+        elif kind == "str":
+            ops.append(lambda s, get=operator.attrgetter(x.name): _str_bytes(get(s)))
+        elif kind == "strs":
+            ops.append(lambda s, get=operator.attrgetter(x.name): _strs_bytes(get(s)))
         else:
-            ops.append(lambda s, st=st, get=get: st.pack(*get(s)))
-        run.clear()
-
-    for f in layout.fields:
-        if f.kind in ("int", "float", "bool"):
-            run.append(f)
-            continue
-        close_run()
-        get = operator.attrgetter(f.name)
-        if f.kind == "str":
-            ops.append(lambda s, get=get: _str_bytes(get(s)))
-        elif f.kind == "strs":
-            ops.append(lambda s, get=get: _strs_bytes(get(s)))
-        else:
-            ops.append(lambda s, get=get, dt=np.dtype(f.dtype): _array_bytes(get(s), dt))
-    close_run()
+            ops.append(lambda s, get=operator.attrgetter(x.name), dt=np.dtype(x.dtype): _array_bytes(get(s), dt))
 
     def encode(sample) -> bytes:
         return b"".join([op(sample) for op in ops])
@@ -158,50 +170,33 @@ def make_shaped_encoder(layout: Layout, example) -> Callable[[Any], bytes]:
     one ``tobytes()``. A sample whose arrays differ from the example is encoded by the general
     encoder — the bytes are the same either way."""
     general = make_encoder(layout)
-    arrays = []
+    spec = {}
     for f in layout.fields:
         if f.kind == "array":
             a = np.asarray(getattr(example, f.name))
-            dt = np.dtype(f.dtype)
-            arrays.append((f.name, a.shape, dt.num, _U32.pack(a.size),
-                           _SHAPES[a.ndim].pack(a.ndim, *a.shape) if a.ndim < 8 else None))  # fmt: skip
-    if not arrays or any(tail is None for *_, tail in arrays):
+            if a.ndim >= 8:
+                return general
+            spec[f.name] = (a.shape, np.dtype(f.dtype).num, _U32.pack(a.size), _SHAPES[a.ndim].pack(a.ndim, *a.shape))
+    if not spec:
         return general
-    ops: list = []
-    run: list[FieldSpec] = []
-    spec = {name: (shape, num, head, tail) for name, shape, num, head, tail in arrays}
-
-    def close_run() -> None:
-        if run:
-            st = struct.Struct("<" + "".join({"int": "q", "float": "d", "bool": "?"}[f.kind] for f in run))
-            get = operator.attrgetter(*(f.name for f in run))
-            ops.append(("scalars", st, get, len(run) == 1))
-            run.clear()
-
-    for f in layout.fields:
-        if f.kind in ("int", "float", "bool"):
-            run.append(f)
-            continue
-        close_run()
-        ops.append((f.kind, f.name, spec.get(f.name)))
-    close_run()
+    ops = [(kind, x if kind == "scalars" else x.name, spec.get(getattr(x, "name", None)))
+           for kind, x in _field_groups(layout)]  # fmt: skip
 
     def encode(sample) -> bytes:
         parts = []
-        for op in ops:
-            kind = op[0]
+        for kind, x, arr in ops:
             if kind == "scalars":
-                parts.append(op[1].pack(op[2](sample)) if op[3] else op[1].pack(*op[2](sample)))
+                parts.append(x(sample))
             elif kind == "array":
-                a = getattr(sample, op[1])
-                shape, num, head, tail = op[2]
+                a = getattr(sample, x)
+                shape, num, head, tail = arr
                 if type(a) is not np.ndarray or a.shape != shape or a.dtype.num != num:
                     return general(sample)
                 parts += (head, a.tobytes(), tail)
             elif kind == "str":
-                parts.append(_str_bytes(getattr(sample, op[1])))
+                parts.append(_str_bytes(getattr(sample, x)))
             else:
-                parts.append(_strs_bytes(getattr(sample, op[1])))
+                parts.append(_strs_bytes(getattr(sample, x)))
         return b"".join(parts)
 
     return encode
