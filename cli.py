@@ -633,8 +633,9 @@ def log_dump(take_file: Path, jsonl: bool, raw: bool, topics: tuple[str, ...]):
 @click.option("--speed", type=float, default=1.0, show_default=True, help="Times real time with --to (0: as fast as possible).")
 @click.option("--verify", is_flag=True, help="Also re-decode the raw packets and check they give the recorded samples bit for bit.")
 def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool):
-    """Replay a take: read back its samples exactly as recorded (summary printed), or with --to
-    send its raw datagrams and frames to live consumers at the recorded timing.
+    """Replay a take: read back its samples exactly as recorded (a summary per channel is printed;
+    from Python, `replay_samples` and `read_columns` hand them to the pipeline), or with --to send
+    its raw datagrams and frames to live consumers at the recorded timing.
 
     \b
     Examples:
@@ -643,9 +644,9 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
     """
     import math
     import time
-    from collections import Counter
 
-    from dualhuman_builder.capture.replay import replay_samples, replay_to, verify_replay
+    from dualhuman_builder.capture.log.reader import read_columns
+    from dualhuman_builder.capture.replay import replay_to, verify_replay
 
     if targets:
         rep = replay_to(take_file, list(targets), speed=math.inf if speed == 0 else speed)
@@ -655,18 +656,15 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
             console.print(f"  not sent (no --to for their kind): {', '.join(rep.skipped_sources)}", highlight=False)
         return
     t = time.perf_counter()
-    counts: Counter = Counter()
-    first = last = None
-    for name, s in replay_samples(take_file):
-        counts[(name, type(s).__name__)] += 1
-        first = s.host_time_ns if first is None else first
-        last = s.host_time_ns
+    columns = read_columns(take_file)
     dt = time.perf_counter() - t
-    span = 0.0 if first is None else (last - first) / 1e9
-    console.print(f"{sum(counts.values())} samples, {span:.1f} s recorded, read in {dt:.2f} s "
-                  f"({span / dt if dt else 0:.0f}x real time)", highlight=False)  # fmt: skip
-    for (name, kind), n in sorted(counts.items()):
-        console.print(f"  {name} {kind}: {n}", highlight=False)
+    n = sum(c.count for c in columns.values())
+    firsts = [int(c.columns["host_time_ns"][0]) for c in columns.values() if c.count]
+    lasts = [int(c.columns["host_time_ns"][-1]) for c in columns.values() if c.count]
+    span = (max(lasts) - min(firsts)) / 1e9 if firsts else 0.0
+    console.print(f"{n} samples over {span:.1f} s of host time, read in {dt:.2f} s", highlight=False)
+    for topic, c in sorted(columns.items()):
+        console.print(f"  {topic}: {c.count} {c.sample_type}", highlight=False)
     if verify:
         chk = verify_replay(take_file)
         if chk.identical:

@@ -37,6 +37,7 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
         os.nice(NICENESS)
     except OSError:
         pass
+    parent = os.getppid()
     from dualhuman_builder.capture.log.writer import SampleEncoder
     from dualhuman_builder.capture.sources import RawPacket, make_decoder, now_ns
 
@@ -49,6 +50,8 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
             try:
                 msg = inbox.get(timeout=STATUS_EVERY_S)
             except queue.Empty:
+                if os.getppid() != parent:  # the recorder died (kill -9): nobody will read what we decode
+                    return
                 msg = None
             if msg is not None and msg[0] == "finish":
                 for i, dec in enumerate(decoders):
