@@ -149,13 +149,30 @@ def test_disk_full_mid_take_stops_cleanly_and_keeps_the_data(tmp_path):
     assert check_take(tmp_path / "fixed.mcap").ok
 
 
+def _orphans(parent_pid: int) -> list[int]:
+    """Processes started from the killed recorder (its decoding process) that are still running."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                environ = (d / "cmdline").read_bytes()
+                if b"multiprocessing.spawn" in environ and f"DUALHUMAN_TEST_PARENT={parent_pid}".encode() in \
+                        (d / "environ").read_bytes():  # fmt: skip
+                    out.append(int(d.name))
+            except OSError:
+                continue
+    return out
+
+
 def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
     """`dualhuman capture` recording a sender that never stops is killed with SIGKILL; the take
     holds everything up to its last flushed chunk and repairs to a complete file."""
     path = tmp_path / "K.mcap"
     sink_port = 47_000 + os.getpid() % 1000
+    marker = f"DUALHUMAN_TEST_PARENT={os.getpid()}"
     proc = subprocess.Popen([sys.executable, "-m", "cli", "capture", "--source", f"trk=vive+udp://127.0.0.1:{sink_port}",
                              "--take", "K", "--out", str(path), "--quiet"], cwd=ROOT,
+                            env={**os.environ, "DUALHUMAN_TEST_PARENT": str(os.getpid())},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
     stream = twelve_trackers(duration_s=0.6)
     packets = sorted(tracker_packets(stream, clock="host"), key=lambda p: p.time_ns)
@@ -180,6 +197,11 @@ def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
     rep = check_take(path)
     assert not rep.complete
     assert rep.per_topic["raw/trk"] > 0.3 * sent, "the flushed chunks (one per second) survive the kill"
+    # the recorder's decoding process does not outlive it
+    deadline = time.monotonic() + 5
+    while _orphans(os.getpid()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _orphans(os.getpid()), f"a decoding process ({marker}) outlived the killed recorder"
     repair_take(path)
     assert check_take(path).ok
 

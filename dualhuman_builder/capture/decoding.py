@@ -38,6 +38,17 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
     except OSError:
         pass
     parent = os.getppid()
+
+    def watchdog() -> None:
+        # the recorder died (kill -9): nobody will read what we decode, and the main thread may be
+        # blocked on a message the recorder was half-way through writing — leave at once
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    import threading
+
+    threading.Thread(target=watchdog, name="parent-watchdog", daemon=True).start()
     from dualhuman_builder.capture.log.writer import SampleEncoder
     from dualhuman_builder.capture.sources import RawPacket, make_decoder, now_ns
 
@@ -50,8 +61,6 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
             try:
                 msg = inbox.get(timeout=STATUS_EVERY_S)
             except queue.Empty:
-                if os.getppid() != parent:  # the recorder died (kill -9): nobody will read what we decode
-                    return
                 msg = None
             if msg is not None and msg[0] == "finish":
                 for i, dec in enumerate(decoders):
