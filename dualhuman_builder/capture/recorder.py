@@ -342,6 +342,7 @@ class Recorder:
             self._stop.set()
             for th in self._threads:
                 th.join(timeout=2.0)
+        recorded_s = time.monotonic() - self.started  # decoding may still catch up below; not part of the take
         if error is None or reason == "source-lost":
             try:
                 self._drain()
@@ -354,7 +355,7 @@ class Recorder:
         if on_status is not None:
             on_status(self.status())  # the final state, decoding complete
         stats = self._stats()
-        result = TakeResult(self.writer.path, self.take, reason, error, time.monotonic() - self.started,
+        result = TakeResult(self.writer.path, self.take, reason, error, recorded_s,
                             self.writer.take_start_utc, self.writer.messages, self.writer.samples_per_topic(), stats,
                             self.events)  # fmt: skip
         try:
