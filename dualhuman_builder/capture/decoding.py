@@ -55,7 +55,6 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
     try:
         decoders = [make_decoder(u) for u in urls]
         encoder = SampleEncoder(names, bindings, foxglove_hz)
-        outbox.put(("ready",))
         next_status = 0.0
         while True:
             try:
@@ -102,15 +101,12 @@ class DecodeProcess:
         self.proc.start()
         self.counters: list[dict[str, int]] = [{} for _ in urls]
         self.status: list[dict[str, Any]] = [{} for _ in urls]
-        self.submitted = 0
         #: CPU seconds the decoding process used (known once it has finished).
         self.cpu_s: float | None = None
         self.error: str | None = None
-        self.ready = False
 
     def submit(self, index: int, packets) -> None:
         self._inbox.put(("packets", index, [(p.host_time_ns, p.data) for p in packets]))
-        self.submitted += 1
 
     def poll(self, timeout: float = 0.0) -> list[tuple]:
         """``("items", source, items, events)`` messages that came back (status and counters are
@@ -132,8 +128,6 @@ class DecodeProcess:
                     self.cpu_s = msg[3]
                     out.append(msg)
                     break
-            elif kind == "ready":
-                self.ready = True
             elif kind == "error":
                 self.error = msg[1]
                 raise RuntimeError(f"the decoding process failed:\n{msg[1]}")

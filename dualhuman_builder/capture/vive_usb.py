@@ -1,4 +1,4 @@
-"""``vive+usb://[?serial=LHR-XXXXXXXX&timeout=S]``: a VIVE tracker's IMU over USB HID, read with
+"""``vive+usb://[?serial=LHR-1A2B3C4D&timeout=S]``: a VIVE tracker's IMU over USB HID, read with
 pyusb (libusb-1.0). Only the IMU: the pose needs the lighthouse solver and is not in the HID
 stream (:mod:`dualhuman_builder.capture.wire.vive_hid`); use ``vive+udp://`` for poses.
 
@@ -130,7 +130,7 @@ class ViveUsbDecoder(Decoder):
 def _options(url: str, params: tuple[str, ...]) -> tuple[str | None, float]:
     parts, query = parse_source_url(url, params)
     if parts.netloc or parts.path not in ("", "/"):
-        raise SourceError(f"{url!r}: vive+usb takes no host or path", fix="write vive+usb://?serial=LHR-XXXXXXXX")
+        raise SourceError(f"{url!r}: vive+usb takes no host or path", fix="write vive+usb://?serial=LHR-1A2B3C4D")
     serial = query.get("serial") or None
     timeout = number_param(query, "timeout", float, 0.0)
     if not timeout >= 0:

@@ -32,7 +32,6 @@ _RECORD_HEAD = struct.Struct("<BQ")
 _OP_FOOTER = 0x02
 _OP_CHUNK = 0x06
 _OP_DATA_END = 0x0F
-_CHANNEL_ID = struct.Struct("<H")
 
 
 @dataclass
@@ -270,56 +269,14 @@ class TakeReader:
         return out
 
     def _scanned_message_data(self, wanted: Callable[[Channel], bool]) -> dict[int, list]:
-        from mcap.data_stream import ReadDataStream
-
         out: dict[int, list] = {}
-        keep: set[int] = set()
-        unpack_head = _RECORD_HEAD.unpack_from
-        unpack_ch = _CHANNEL_ID.unpack_from
-        for op, body in self._top():
-            if op != _OP_CHUNK:
-                if op == OP_MESSAGE:
-                    ch = unpack_ch(body, 0)[0]
-                    if ch in keep:
-                        out[ch].append(memoryview(body)[22:])
-                    continue
-                try:
-                    rec = _parse(op, body)
-                except Exception as e:  # noqa: BLE001
-                    self.problems.append(f"unreadable record (opcode 0x{op:02x}): {type(e).__name__}: {e}")
-                    continue
-                self._note(rec)
-                if isinstance(rec, Channel) and wanted(rec):
-                    keep.add(rec.id)
-                    out.setdefault(rec.id, [])
-                continue
-            try:
-                chunk = _parse(op, body)
-                data = _decompress(chunk)
-            except Exception as e:  # noqa: BLE001
-                self.problems.append(f"skipped a damaged chunk: {type(e).__name__}: {e}")
-                continue
-            mv = memoryview(data)
-            n = len(data)
-            pos = 0
-            while pos + 9 <= n:
-                rop, length = unpack_head(data, pos)
-                stop = pos + 9 + length
-                if stop > n:
-                    self.problems.append(f"a chunk's record at byte {pos} runs past its end; rest of chunk skipped")
-                    break
-                if rop == OP_MESSAGE:
-                    if length >= 22:
-                        ch = unpack_ch(data, pos + 9)[0]
-                        if ch in keep:
-                            out[ch].append(mv[pos + 31:stop])
-                elif rop == OP_SCHEMA or rop == OP_CHANNEL:
-                    rec = (Schema if rop == OP_SCHEMA else Channel).read(ReadDataStream(io.BytesIO(data[pos + 9:stop])))
-                    self._note(rec)
-                    if rop == OP_CHANNEL and wanted(rec):
-                        keep.add(rec.id)
-                        out.setdefault(rec.id, [])
-                pos = stop
+        for item in self._items():
+            if item[0] == "msg":
+                data = out.get(item[1])
+                if data is not None:
+                    data.append(item[5])
+            elif isinstance(item[1], Channel) and wanted(item[1]):
+                out.setdefault(item[1].id, [])
         return out
 
     def records(self) -> Iterator:
