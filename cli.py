@@ -674,5 +674,81 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
             sys.exit(1)
 
 
+# ---------------------------------------------------------------------------- sync / fuse / fit
+def _take_options(f):
+    f = click.option("--take", required=True, help="Take name in the workspace (see `dualhuman status WS`).")(f)
+    f = click.option("--fps", type=click.FloatRange(min=1.0, max=1000.0), default=30.0, show_default=True,
+                     help="Frame rate of the common timeline (and of the fitted bodies).")(f)
+    f = click.option("--no-trackers", is_flag=True, help="Ignore the trackers (fusion falls back to the suit's drifting positions; flagged).")(f)
+    f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
+    return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
+
+
+@main.command()
+@_take_options
+def sync(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool):
+    """Put a take's streams on one timeline and calibrate the trackers.
+
+    Per stream: its clock's offset and drift against the host (a robust fit of the lower envelope
+    of device-vs-host stamps: delayed packets are rejected). Per tracker: the residual lag against
+    the suit segment it is strapped to (cross-correlation of angular speeds) and its mounting
+    rotation and offset (least squares, with the suit's heading and position drift). Writes
+    sync.npz and sync.json (estimates with 1-sigma uncertainties).
+
+    Example:  dualhuman sync WS --take T001
+    """
+    from dualhuman_builder.fit.stages import run_sync
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = run_sync(ws, take, fps=fps, use_trackers=not no_trackers, force=force, log=console.print)
+        console.print(f"sync {'up to date' if res.skipped else 'done'}: {res.artifacts.get('sync.json')}", highlight=False)
+
+
+@main.command()
+@_take_options
+def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool):
+    """Fuse each actor's suit and trackers into one drift-free skeleton.
+
+    Suit orientations (heading-corrected against the tracker world), positions corrected by the
+    trackers (the drift-free reference); tracker jumps rejected, dropouts bridged smoothly.
+    Runs `sync` first if needed.
+
+    Example:  dualhuman fuse WS --take T001
+    """
+    from dualhuman_builder.fit.stages import run_fuse
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = run_fuse(ws, take, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
+        console.print(f"fuse {'up to date' if res.skipped else 'done'}", highlight=False)
+
+
+@main.command()
+@_take_options
+@click.option("--no-collision", is_flag=True, help="Fit without the SDF collision term (to see what it removes).")
+@click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
+@click.option("--device", default="cpu", show_default=True, help="torch device for the fit, e.g. cuda.")
+def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, no_collision: bool, window: int, device: str):
+    """Fit both actors' anny bodies to a take, jointly.
+
+    One shape per actor from the suit's segment lengths (and the registered height); per frame a
+    closed-form retarget of the segment orientations, refined over windows of frames by L-BFGS on
+    orientation, tracker, smoothness, floor and foot-stance terms plus an SDF collision term between
+    the two bodies. Writes sequence.npz, shapes.json, frames.npz and report.html / report.png.
+    Runs `sync` and `fuse` first if needed.
+
+    Example:  dualhuman fit WS --take T001
+    """
+    from dualhuman_builder.fit.fitter import FitConfig
+    from dualhuman_builder.fit.stages import run_fit
+    from dualhuman_builder.workspace import Workspace
+
+    cfg = FitConfig(collision=not no_collision, window=window, device=device)
+    with Workspace.open(workspace) as ws:
+        res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
+        console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
+
+
 if __name__ == "__main__":
     main()

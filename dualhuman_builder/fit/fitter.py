@@ -1,0 +1,363 @@
+"""Fit stage: both actors' anny bodies over a take, jointly, with an SDF collision term.
+
+Per frame the pose starts from a closed-form retarget of the fused segment orientations onto the
+anny bones (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.retarget`); then both actors are refined
+together over windows of frames (batched, each window warm-started from the retarget and joined to
+the previous window's last frames), by L-BFGS on::
+
+    E = sum_frames [ |delta|^2 / s_o^2                        orientation: change of each driven bone (deg)
+                   + sum_trackers |site - p_tracker|^2 / s_t^2  tracker positions (drift-free reference)
+                   + sum_joints |accel|^2 / s_a^2            temporal smoothness (22 joints)
+                   + sum_soles relu(-y)^2 / s_f^2             no foot below the floor
+                   + sum_stance |sole step|^2 / s_s^2         no sliding while a foot is in stance ]
+      + w_c * collision(verts_a, verts_b)                     SDF term, frames where the bodies are close
+
+``delta (S, 3)``: a world-frame rotation vector applied to each driven bone's retargeted global
+rotation (so the orientation data term and the pose regulariser toward the retarget are the same
+quadratic); ``transl`` starts at the fused pelvis position. The skeleton terms use the
+:class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
+few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
+penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
+and only those frames get the collision pass. Frames far apart pay nothing.
+"""
+
+# ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+import roma
+import torch
+from scipy.spatial.transform import Rotation
+
+from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.errors import DualhumanError
+
+
+class FitError(DualhumanError):
+    """The fit cannot run on this input."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Weights are standard deviations (the terms are squared residuals over them)."""
+
+    window: int = 48
+    overlap: int = 4
+    iterations: int = 30
+    collision: bool = True
+    collision_iterations: int = 12
+    sigma_orientation_deg: float = 2.0
+    sigma_tracker_m: float = 0.004
+    #: joint acceleration, m/s^2 (scaled to a per-frame second difference by fps)
+    sigma_accel_m_s2: float = 4.0
+    sigma_floor_m: float = 0.002
+    sigma_slide_m: float = 0.002
+    #: the collision loss is a mean over both meshes' vertices (~27,000): this makes a vertex 2 mm deep
+    #: cost about as much as a tracker 4 mm off
+    collision_weight: float = 3e5
+    #: a foot is in stance when its ankle moves slower than this (m/s) ...
+    stance_speed_m_s: float = 0.15
+    #: ... and its sole is within this height of the floor (m)
+    stance_height_m: float = 0.03
+    device: str = "cpu"
+
+
+@dataclass
+class ActorInput:
+    """What the fitter needs of one actor (``T`` frames on the timeline)."""
+
+    name: str
+    shape: dict
+    seg_rot: np.ndarray  # (T, 23, 4) xyzw fused segment orientations, tracker world
+    pelvis: np.ndarray  # (T, 3) fused pelvis origin
+    valid: np.ndarray  # (T,) frames with suit data
+    trk_pos: np.ndarray  # (T, K, 3)
+    trk_valid: np.ndarray  # (T, K)
+    trk_segment: np.ndarray  # (K,)
+    trk_offset: np.ndarray  # (K, 3)
+    ankles: np.ndarray  # (T, 2, 3) fused LeftFoot, RightFoot origins (stance detection)
+
+
+@dataclass
+class FitResult:
+    """``sequence``: the fitted InteractionSequence; ``frames``: per-frame series (T,) for the
+    report; ``summary``: headline numbers; ``valid (T,)``: frames with suit data for both."""
+
+    sequence: object
+    frames: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+    valid: np.ndarray | None = None
+
+
+def _fill(rot: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Bridge invalid frames of ``rot (T, S, 4)`` by slerp between the nearest valid ones (held at
+    the ends)."""
+    if valid.all():
+        return rot
+    if not valid.any():
+        raise FitError("no frame of the suit stream is valid")
+    t = np.arange(len(rot))
+    good = np.flatnonzero(valid)
+    out = rot.copy()
+    for s in range(rot.shape[1]):
+        r = Rotation.from_quat(rot[good, s])
+        from scipy.spatial.transform import Slerp
+
+        tt = np.clip(t, good[0], good[-1])
+        out[:, s] = Slerp(good, r)(tt).as_quat() if len(good) > 1 else np.repeat(rot[good, s], len(t), 0)
+    return out
+
+
+def _interp_rows(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    t = np.arange(len(x))
+    good = np.flatnonzero(valid & np.isfinite(x).all(-1))
+    if len(good) == 0:
+        return np.zeros_like(x)
+    return np.stack([np.interp(t, good, x[good, i]) for i in range(x.shape[-1])], -1)
+
+
+def stance_mask(ankles: np.ndarray, fps: float, sole_offset: np.ndarray, cfg: FitConfig) -> np.ndarray:
+    """``(T, 2)`` bool: foot in stance (slow ankle, sole near the floor). ``sole_offset (2,)``: ankle
+    height above the sole at rest."""
+    v = np.zeros(ankles.shape[:2])
+    v[1:] = np.linalg.norm(np.diff(ankles, axis=0), axis=-1) * fps
+    v[0] = v[1] if len(v) > 1 else 0.0
+    low = ankles[..., 1] - sole_offset[None] < cfg.stance_height_m
+    return (v < cfg.stance_speed_m_s) & low
+
+
+class _Actor:
+    """Tensors of one actor for the fitter."""
+
+    def __init__(self, model, inp: ActorInput, fps: float, cfg: FitConfig, soles: dict):
+        from dualhuman_builder.fit.skeleton import BodyRig
+
+        dev, dt = torch.device(cfg.device), torch.float32
+        self.name = inp.name
+        self.rig = BodyRig(model, inp.shape, device=dev)
+        self.rig.add_subset("soles", np.concatenate([soles["L"], soles["R"]]))
+        self.n_sole = len(soles["L"])
+        valid = np.asarray(inp.valid, bool)
+        rot = _fill(np.asarray(inp.seg_rot, np.float64), valid)
+        frames = torch.as_tensor(Rotation.from_quat(rot.reshape(-1, 4)).as_matrix().reshape(*rot.shape[:2], 3, 3), dtype=dt, device=dev)
+        self.target = self.rig.retarget(frames)  # (T, S, 3, 3)
+        self.transl0 = torch.as_tensor(_interp_rows(np.asarray(inp.pelvis, np.float64), valid), dtype=dt, device=dev)
+        self.valid = torch.as_tensor(valid, device=dev)
+        self.trk_pos = torch.as_tensor(np.nan_to_num(inp.trk_pos), dtype=dt, device=dev)
+        self.trk_valid = torch.as_tensor(np.asarray(inp.trk_valid, bool) & valid[:, None], device=dev)
+        self.trk_seg = torch.as_tensor(np.asarray(inp.trk_segment, np.int64), device=dev)
+        self.trk_bone = self.rig.segment_bones[self.trk_seg] if len(inp.trk_segment) else self.trk_seg
+        self.trk_off = torch.as_tensor(np.asarray(inp.trk_offset, np.float64), dtype=dt, device=dev)
+        with torch.no_grad():
+            rest = self.rig.pose(torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3), torch.zeros(1, 3, device=dev), "soles")
+            foot = [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]
+            ankle_h = rest.heads[0, self.rig.segment_bones[foot], 1].cpu().numpy()
+            sole_h = np.array([rest.vertices[0, : self.n_sole, 1].min().item(), rest.vertices[0, self.n_sole :, 1].min().item()])
+        ankles = _interp_rows(np.asarray(inp.ankles, np.float64).reshape(len(valid), -1), valid).reshape(-1, 2, 3)
+        self.stance = torch.as_tensor(stance_mask(ankles, fps, ankle_h - sole_h, cfg), device=dev)
+        self.joints = self.rig.model.joint22_index.to(dev)
+
+    def pose(self, delta, dtransl, sl: slice, vertices="soles"):
+        rot = roma.rotvec_to_rotmat(delta) @ self.target[sl]
+        return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices)
+
+
+def _energy(act: _Actor, delta, dtransl, sl: slice, ctx, cfg: FitConfig, fps: float):
+    """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles) of the two frames
+    before ``sl`` (fixed, from the previous window) or None. Returns (energy, posed, rot)."""
+    rot, posed = act.pose(delta, dtransl, sl)
+    valid = act.valid[sl].float()
+    s_o = np.radians(cfg.sigma_orientation_deg)
+    e = (delta.pow(2).sum((-1, -2)) * valid).sum() / s_o**2
+    if len(act.trk_seg):
+        seg_frame = rot[:, act.trk_seg] @ act.rig.seg_frame[act.trk_seg]  # (W, K, 3, 3)
+        site = posed.heads[:, act.trk_bone] + (seg_frame @ act.trk_off[None, :, :, None])[..., 0]
+        r = (site - act.trk_pos[sl]).pow(2).sum(-1) * act.trk_valid[sl].float()
+        e = e + r.sum() / cfg.sigma_tracker_m**2
+    joints = posed.heads[:, act.joints]
+    soles = posed.vertices
+    if ctx is not None:
+        joints = torch.cat([ctx[0], joints], 0)
+        soles_all = torch.cat([ctx[1], soles], 0)
+        stance = torch.cat([act.stance[sl.start - len(ctx[0]) : sl.start], act.stance[sl]], 0)
+    else:
+        soles_all, stance = soles, act.stance[sl]
+    if joints.shape[0] >= 3:
+        acc = joints[2:] - 2 * joints[1:-1] + joints[:-2]
+        s_a = cfg.sigma_accel_m_s2 / fps**2
+        e = e + acc.pow(2).sum() / s_a**2
+    e = e + torch.relu(-soles[..., 1]).pow(2).sum() / cfg.sigma_floor_m**2
+    if soles_all.shape[0] >= 2:
+        n = act.n_sole
+        feet = torch.stack([soles_all[:, :n].mean(1), soles_all[:, n:].mean(1)], 1)  # (W', 2, 3)
+        step = (feet[1:] - feet[:-1])[..., [0, 2]].pow(2).sum(-1)
+        both = (stance[1:] & stance[:-1]).float()
+        e = e + (step * both).sum() / cfg.sigma_slide_m**2
+    return e, posed, rot
+
+
+def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = FitConfig(),
+               progress: Callable[[str], None] | None = None) -> FitResult:  # fmt: skip
+    """Fit one or two actors over the whole timeline (see the module docstring)."""
+    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.fit.skeleton import sole_vertices
+    from dualhuman_builder.tracks import BodyTrack, InteractionSequence
+
+    say = progress or (lambda _m: None)
+    if not inputs:
+        raise FitError("nothing to fit: no actors")
+    T = len(inputs[0].seg_rot)
+    if any(len(i.seg_rot) != T for i in inputs):
+        raise FitError("actors have different frame counts; run them through one sync")
+    if T < 2:
+        raise FitError(f"the take has {T} frame(s) on the timeline; fitting needs at least 2")
+    t_start = time.perf_counter()
+    soles = sole_vertices(model)
+    acts = [_Actor(model, inp, fps, cfg, soles) for inp in inputs]
+    dev = torch.device(cfg.device)
+    S = len(MVN_SEGMENTS)
+    deltas = [torch.zeros(T, S, 3, device=dev) for _ in acts]
+    dtransl = [torch.zeros(T, 3, device=dev) for _ in acts]
+    collide = CollisionTerm(model.faces.cpu().numpy()) if (cfg.collision and len(acts) == 2) else None
+    pen_before = np.zeros(T)
+    pen_share_before = np.zeros(T)
+    collided_frames = 0
+    W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
+    starts = list(range(0, T, max(W - O, 1)))
+    for wi, s0 in enumerate(starts):
+        s1 = min(s0 + W, T)
+        sl = slice(s0, s1)
+        ctx_n = min(2, s0)
+        with torch.no_grad():
+            ctxs = []
+            for k, a in enumerate(acts):
+                if ctx_n:
+                    csl = slice(s0 - ctx_n, s0)
+                    _, p = a.pose(deltas[k][csl], dtransl[k][csl], csl)
+                    ctxs.append((p.heads[:, a.joints], p.vertices))
+                else:
+                    ctxs.append(None)
+        params = []
+        for k in range(len(acts)):
+            params += [deltas[k][sl].clone().requires_grad_(True), dtransl[k][sl].clone().requires_grad_(True)]
+
+        def skeleton_energy():
+            total = 0.0
+            outs = []
+            for k, a in enumerate(acts):
+                e, posed, rot = _energy(a, params[2 * k], params[2 * k + 1], sl, ctxs[k], cfg, fps)
+                total = total + e
+                outs.append((posed, rot))
+            return total, outs
+
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            e, _ = skeleton_energy()
+            e.backward()
+            return e
+
+        opt.step(closure)
+        if collide is not None:
+            with torch.no_grad():
+                verts = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                pen = collide.penetration(verts[0], verts[1])
+            pen_before[sl] = pen["max_depth_m"]
+            pen_share_before[sl] = pen["share"]
+            hit = np.flatnonzero(pen["max_depth_m"] > 0)
+            if len(hit):
+                collided_frames += len(hit)
+                hit_t = torch.as_tensor(hit, device=dev)
+                copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+
+                def cclosure():
+                    copt.zero_grad()
+                    e, _ = skeleton_energy()
+                    vs = []
+                    for k, a in enumerate(acts):
+                        d, tr = params[2 * k][hit_t], params[2 * k + 1][hit_t]
+                        rot = roma.rotvec_to_rotmat(d) @ a.target[sl][hit_t]
+                        vs.append(a.rig.pose(rot, a.transl0[sl][hit_t] + tr, True).vertices)
+                    c = collide(vs[0], vs[1]).loss.sum()
+                    e = e + cfg.collision_weight * c
+                    e.backward()
+                    return e
+
+                copt.step(cclosure)
+        for k in range(len(acts)):
+            keep = slice(s0 if wi == 0 else s0 + 0, s1)
+            deltas[k][keep] = params[2 * k].detach()[keep.start - s0 :]
+            dtransl[k][keep] = params[2 * k + 1].detach()[keep.start - s0 :]
+        say(f"window {wi + 1}/{len(starts)}: frames {s0}-{s1 - 1}")
+    seconds = time.perf_counter() - t_start
+
+    # ---- outputs and per-frame diagnostics
+    tracks, frames = [], {}
+    pen_after = np.zeros(T)
+    share_after = np.zeros(T)
+    verts_all = []
+    for k, a in enumerate(acts):
+        with torch.no_grad():
+            rot = roma.rotvec_to_rotmat(deltas[k]) @ a.target
+            transl = a.transl0 + dtransl[k]
+            pose = a.rig.local_pose(rot).cpu().numpy()
+            ang = np.degrees(deltas[k].norm(dim=-1).mean(-1).cpu().numpy())
+            frames[f"orientation change (deg)/{a.name}"] = np.where(a.valid.cpu().numpy(), ang, np.nan)
+            if len(a.trk_seg):
+                posed = a.rig.pose(rot, transl, False)
+                seg_frame = rot[:, a.trk_seg] @ a.rig.seg_frame[a.trk_seg]
+                site = posed.heads[:, a.trk_bone] + (seg_frame @ a.trk_off[None, :, :, None])[..., 0]
+                r = (site - a.trk_pos).norm(dim=-1).cpu().numpy() * 1000
+                tv = a.trk_valid.cpu().numpy()
+                with np.errstate(invalid="ignore"):
+                    frames[f"tracker residual (mm)/{a.name}"] = np.where(tv.any(1), (r * tv).sum(1) / np.maximum(tv.sum(1), 1), np.nan)
+        shape = a.rig.shape.cpu().numpy()
+        meta = {"fit": {"collision": collide is not None, "trackers": int(len(a.trk_seg)), "config": _config_dict(cfg)}}
+        tracks.append(BodyTrack.from_model(model, pose, transl.cpu().numpy(), shape, fps, actor=a.name, meta=meta))
+    if collide is not None:
+        for s0 in range(0, T, 64):
+            sl = slice(s0, min(s0 + 64, T))
+            with torch.no_grad():
+                vs = [a.pose(deltas[k][sl], dtransl[k][sl], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                pen = collide.penetration(vs[0], vs[1])
+            pen_after[sl] = pen["max_depth_m"]
+            share_after[sl] = pen["share"]
+        frames["penetration depth (mm)/without collision term"] = pen_before * 1000
+        frames["penetration depth (mm)/with collision term"] = pen_after * 1000
+        del verts_all
+    valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in acts])
+    seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
+    summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
+               "collision_frames": int(collided_frames)}  # fmt: skip
+    if collide is not None:
+        summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
+                       max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),
+                       penetrating_share_before=float(pen_share_before.max()), penetrating_share_after=float(share_after.max()))  # fmt: skip
+    return FitResult(seq if seq is not None else tracks, frames, summary, valid)
+
+
+def _config_dict(cfg: FitConfig) -> dict:
+    return {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}
+
+
+def inputs_from_fused(fused: list, shapes: dict[str, dict]) -> list[ActorInput]:
+    """:class:`ActorInput` per :class:`~dualhuman_builder.fit.fuse.FusedActor`."""
+    out = []
+    lf, rf = MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")
+    for f in fused:
+        sk = f.skeleton
+        valid = np.asarray(sk.orientation_valid).all(1)
+        out.append(ActorInput(name=sk.actor, shape=shapes[sk.actor], seg_rot=np.asarray(sk.orientations),
+                              pelvis=np.asarray(sk.positions[:, 0]), valid=valid, trk_pos=f.trk_pos, trk_valid=f.trk_valid,
+                              trk_segment=f.trk_segment, trk_offset=f.trk_offset,
+                              ankles=np.asarray(sk.positions[:, [lf, rf]])))  # fmt: skip
+    return out
+
+
+__all__ = ["FitConfig", "FitError", "FitResult", "ActorInput", "fit_actors", "inputs_from_fused", "replace"]

@@ -1,0 +1,196 @@
+"""A fast, differentiable anny of one fixed shape, parameterised by segment orientations.
+
+The fitter never calls anny in its inner loop: for one actor's shape it precomputes what anny's
+forward pass would do and evaluates it in a handful of batched tensor operations, exactly (to float
+precision: checked against :meth:`BodyModel.forward` in the tests).
+
+Parameterisation (Y-up world, metres)
+    ``A (B, S, 3, 3)``: the world-aligned global rotation (see :mod:`dualhuman_builder.body.model`)
+    of the anny bone each of the ``S = 23`` MVN segments drives (``rigs/mvn_anny.toml``); every other
+    anny bone (twist bones, spine05, fingers...) follows its nearest driven ancestor (zero local
+    rotation), as the mapping's comments say. ``transl (B, 3)``: the root bone head (pelvis centre).
+
+Positions
+    bone heads ``h_j = transl + sum over the edges e on the path root->j of A_parent(e) (h0_e - h0_parent(e))``
+    (``h0``: heads at anny's zero pose, root at the origin) — one matrix product with a constant
+    path matrix, no loop over the tree; vertices by anny's linear blend skinning
+    ``v = sum_k w_vk (A_k u_vk + h_k)`` with ``u_vk`` the vertex's zero-pose offset as carried by
+    bone ``k`` (anny's rest bone poses are not its zero pose, so ``u`` is per vertex and bone).
+
+Segment frames
+    the segment orientation a suit reports is ``R_seg = A S`` with the constant
+    ``S = A_Tpose^T B`` (:func:`~dualhuman_builder.sim.groundtruth.segment_kinematics` defines it);
+    :meth:`BodyRig.retarget` inverts that: ``A = R_seg S^T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import roma
+import torch
+
+from dualhuman_builder.body.mapping import MVN_SEGMENTS, SegmentMapping, load_segment_mapping
+
+
+@dataclass
+class Posed:
+    """Output of :meth:`BodyRig.pose`: ``heads (B, J, 3)``, ``rot (B, J, 3, 3)`` world-aligned
+    global rotations of all J anny bones, ``vertices (B, V', 3)`` (the rig's vertex subset) or None."""
+
+    heads: torch.Tensor
+    rot: torch.Tensor
+    vertices: torch.Tensor | None
+
+
+class BodyRig:
+    """anny of one shape as tensors. ``vertex_ids``: the vertices to skin (None: all of them;
+    an empty array: none); the fitter skins a subset for floor contact and the full mesh for
+    collisions."""
+
+    def __init__(self, model, shape, mapping: SegmentMapping | None = None, device=None, dtype=torch.float32):
+        from dualhuman_builder.body.joints import tpose
+        from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+
+        self.model = model
+        self.device = torch.device(device or model.device)
+        self.dtype = dtype
+        self.mapping = mapping or load_segment_mapping(bone_names=model.bone_names, num_vertices=model.num_vertices)
+        self.shape = model.shape_tensor(shape).detach().reshape(-1).to(model.device)
+        a, c = model.anny, model._c
+        J = model.num_bones
+        with torch.no_grad():
+            eye = torch.eye(4, dtype=model.dtype, device=model.device).expand(1, J, 4, 4)
+            raw = a(pose_parameters=eye, phenotype_kwargs=self.shape[None])
+            zero_pose = raw["bone_poses"][0]
+            to_zero = zero_pose @ torch.linalg.inv(raw["rest_bone_poses"][0])  # per bone, Z-up
+            rest_v = raw["rest_vertices"][0]
+            h0 = (zero_pose[:, :3, 3] @ c.T).double()  # (J, 3) Y-up, root at the origin
+            idx = a.vertex_bone_indices.long()
+            w = a.vertex_bone_weights
+            # per-bone zero-pose positions of each vertex: u_vk = to_zero_k v (Y-up), minus h0_k
+            vh = torch.cat([rest_v, torch.ones_like(rest_v[:, :1])], dim=1)
+            u = (to_zero[idx] @ vh[:, None, :, None])[..., :3, 0] @ c.T
+            u = u.double() - h0[idx]
+            # the same as bone transforms on Y-up rest vertices, for anny's own (warp) skinning kernel
+            zr = c @ to_zero[:, :3, :3] @ c.T
+            zt = to_zero[:, :3, 3] @ c.T
+            rest_y = rest_v @ c.T
+            t_local = roma.rotvec_to_rotmat(tpose(model, self.shape).double())
+            t_glob = model.local_to_global(t_local[None])[0]  # (J, 3, 3)
+        parents = model.bone_parents
+        self.parents = torch.as_tensor(parents, device=self.device)
+        self.h0 = h0.to(self.device, dtype)
+        edge = np.zeros((J, 3))
+        for j in range(1, J):
+            edge[j] = (h0[j] - h0[parents[j]]).cpu().numpy()
+        self.edges = torch.as_tensor(edge, device=self.device, dtype=dtype)
+        path = np.zeros((J, J))
+        for j in range(J):
+            k = j
+            while k > 0:  # root's own edge is zero
+                path[j, k] = 1.0
+                k = parents[k]
+        self.path = torch.as_tensor(path, device=self.device, dtype=dtype)
+        # which driven segment owns each bone
+        bone_seg = {}
+        for s, name in enumerate(MVN_SEGMENTS):
+            for b in self.mapping[name].bones:
+                bone_seg[model.bone_index(b)] = s
+        owner = np.zeros(J, dtype=np.int64)
+        for j in range(J):
+            k = j
+            while k not in bone_seg:
+                k = parents[k]
+            owner[j] = bone_seg[k]
+        self.owner = torch.as_tensor(owner, device=self.device)
+        self.segment_bones = torch.as_tensor([model.bone_index(self.mapping.bone_of(s)) for s in MVN_SEGMENTS],
+                                             device=self.device)  # fmt: skip
+        b = torch.as_tensor(SEGMENT_TPOSE_FRAME, dtype=torch.float64)
+        #: (S, 3, 3) constant: segment frame = A @ S
+        self.seg_frame = (t_glob[self.segment_bones.cpu()].cpu().transpose(-1, -2) @ b).to(self.device, dtype)
+        self._zero_rot = zr.to(self.device, dtype)
+        self._zero_t = (zt.double() - h0).to(self.device, dtype)
+        self._rest_y = rest_y.to(self.device, dtype).contiguous()
+        self._skin = getattr(a, "_skinning_method", None)
+        self._u_all = u.to(self.device, dtype)
+        self._idx_all = idx.to(self.device)
+        self._w_all = w.to(self.device, dtype)
+        self.num_vertices = int(rest_v.shape[0])
+        self._subsets: dict = {}
+        self.set_vertices(None)
+
+    def set_vertices(self, vertex_ids) -> None:
+        """Skin only ``vertex_ids`` (None: all) in :meth:`pose`."""
+        if vertex_ids is None:
+            self.vertex_ids = None
+            self._u, self._idx, self._w = self._u_all, self._idx_all, self._w_all
+        else:
+            ids = torch.as_tensor(np.asarray(vertex_ids, dtype=np.int64), device=self.device)
+            self.vertex_ids = ids
+            self._u, self._idx, self._w = self._u_all[ids], self._idx_all[ids], self._w_all[ids]
+
+    # ------------------------------------------------------------------ forward
+    def bone_rotations(self, seg_rot: torch.Tensor) -> torch.Tensor:
+        """``(B, S, 3, 3)`` driven-bone rotations -> ``(B, J, 3, 3)`` for every anny bone."""
+        return seg_rot[:, self.owner]
+
+    def add_subset(self, name: str, vertex_ids) -> None:
+        """Register a named vertex subset that :meth:`pose` can skin with ``vertices=name``."""
+        ids = torch.as_tensor(np.asarray(vertex_ids, dtype=np.int64), device=self.device)
+        self._subsets[name] = (self._u_all[ids], self._idx_all[ids], self._w_all[ids])
+
+    def pose(self, seg_rot: torch.Tensor, transl: torch.Tensor, vertices: bool | str = True) -> Posed:
+        """Pose ``seg_rot (B, S, 3, 3)``, ``transl (B, 3)``. ``vertices``: True skins the current
+        vertex set (:meth:`set_vertices`), a name skins a subset from :meth:`add_subset`, False none."""
+        rot = self.bone_rotations(seg_rot)
+        parent_rot = rot[:, self.parents.clamp(min=0)]
+        e = (parent_rot @ self.edges[None, :, :, None])[..., 0]  # (B, J, 3); root's edge is zero
+        heads = transl[:, None, :] + torch.einsum("jk,bkd->bjd", self.path, e)
+        verts = None
+        if isinstance(vertices, str):
+            u, idx, w = self._subsets[vertices]
+            p = (rot[:, idx] @ u[None, ..., None])[..., 0] + heads[:, idx]
+            return Posed(heads, rot, (p * w[None, ..., None]).sum(2))
+        if vertices and self.vertex_ids is None and self._skin is not None and self._skin.__module__.endswith("warp_skinning"):
+            # the whole mesh: anny's own skinning kernel with T_k = [A_k Z_k | A_k z_k + h_k]
+            t = torch.zeros(*rot.shape[:2], 4, 4, dtype=rot.dtype, device=rot.device)
+            t[..., :3, :3] = rot @ self._zero_rot
+            t[..., :3, 3] = (rot @ self._zero_t[..., None])[..., 0] + heads
+            t[..., 3, 3] = 1.0
+            rest = self._rest_y.expand(rot.shape[0], -1, -1)
+            verts = self._skin(rest, bone_weights=self._w[None], bone_indices=self._idx[None], bone_transforms=t)
+        elif vertices and self._u.shape[0]:
+            rk = rot[:, self._idx]  # (B, V, K, 3, 3)
+            p = (rk @ self._u[None, ..., None])[..., 0] + heads[:, self._idx]
+            verts = (p * self._w[None, ..., None]).sum(2)
+        return Posed(heads, rot, verts)
+
+    def segment_frames(self, seg_rot: torch.Tensor) -> torch.Tensor:
+        """Suit-style segment orientations ``(B, S, 3, 3)`` of driven-bone rotations."""
+        return seg_rot @ self.seg_frame
+
+    def retarget(self, seg_frames: torch.Tensor) -> torch.Tensor:
+        """Closed-form retarget: suit segment orientations ``(B, S, 3, 3)`` -> driven-bone
+        rotations ``A = R_seg S^T``."""
+        return seg_frames @ self.seg_frame.transpose(-1, -2)
+
+    def local_pose(self, seg_rot: torch.Tensor) -> torch.Tensor:
+        """anny pose parameters ``(B, J, 3)`` rotation vectors (what a BodyTrack stores)."""
+        rot = self.bone_rotations(seg_rot)
+        return roma.rotmat_to_rotvec(self.model.global_to_local(rot))
+
+
+def sole_vertices(model, per_foot: int = 40) -> dict[str, np.ndarray]:
+    """The ``per_foot`` lowest vertices under each foot of anny's rest mesh (foot and toe bones):
+    the points that touch the floor in stance. ``{"L": (n,), "R": (n,)}`` vertex indices."""
+    out = {}
+    with torch.no_grad():
+        rest = model.rest().vertices[0].cpu().numpy()
+    bone_of = model.vertex_bone()
+    for side in ("L", "R"):
+        feet = [i for i, n in enumerate(model.bone_names) if n.endswith(f".{side}") and (n.startswith("foot") or n.startswith("toe"))]
+        cand = np.flatnonzero(np.isin(bone_of, feet))
+        out[side] = cand[np.argsort(rest[cand, 1])[:per_foot]]
+    return out

@@ -1,0 +1,520 @@
+"""Mounting of VIVE trackers on suit segments, and the suit world against the tracker world.
+
+Model, for ``K`` trackers on one actor, tracker ``k`` strapped to suit segment ``k``, every sample
+on one common timeline ``t``::
+
+    R_tr,k(t) = Y(t) R_seg,k(t) M_k
+    p_tr,k(t) = Y(t) p_seg,k(t) + d(t) + Y(t) R_seg,k(t) m_k
+
+* ``R_seg``, ``p_seg``: the suit's segment orientation (segment -> suit world) and origin (suit
+  world, m); ``R_tr``, ``p_tr``: the tracker's pose in the tracker world (drift-free reference);
+* ``M_k``: tracker frame in the segment frame (rotation), ``m_k``: tracker origin in the segment
+  frame (m) — the mount, constant;
+* ``Y(t)``: rotation about world +Y by ``psi(t)`` (rad), the suit's heading in the tracker world (a
+  constant offset plus a slow drift), piecewise linear on knots;
+* ``d(t)``: translation (m, tracker world), the suit's position drift plus any constant offset
+  between the worlds, piecewise linear on finer knots with a random-walk prior.
+
+:func:`calibrate_mounts` estimates all of these; :class:`MountCalibration` carries them and maps
+suit poses into the tracker world and tracker poses back onto their segments.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solveh_banded
+from scipy.spatial.transform import Rotation
+
+_MIN_DURATION_S = 2.0
+_MIN_SAMPLES = 10
+#: Rotation / translation residuals above max(6 x median, floor) are rejected as outliers.
+_ROT_FLOOR_RAD = math.radians(2.0)
+_TRANS_FLOOR_M = 0.02
+_OUTLIER_FACTOR = 6.0
+#: Prior std of a mount translation (m): the "tiny ridge" for segments that hardly rotate.
+_MOUNT_PRIOR_M = 1.0
+#: Block length (s) used to account for correlated residuals in the uncertainties.
+_BLOCK_S = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class MountCalibration:
+    """Result of :func:`calibrate_mounts` (``T`` samples, ``K`` trackers).
+
+    Mounts (tracker in segment frame): ``rotations (K, 4)`` xyzw (``M_k``), ``translations (K, 3)`` m
+    (``m_k``). Suit world -> tracker world: ``heading_rad (T,)`` (``psi``, rotation about +Y) and
+    ``drift (T, 3)`` m (``d``) at the input times, and the knots they are interpolated from
+    (``heading_knots_s``/``heading_knots_rad``, ``drift_knots_s``/``drift_knots_m``; seconds on the
+    input timeline). Fit quality per tracker, over the inlier samples: ``rotation_rms_deg (K,)``
+    (RMS angle of ``(Y R_seg M)^T R_tr``), ``translation_rms_m (K,)`` (RMS norm of the position
+    residual); 1-sigma uncertainties of the mounts ``rotation_std_deg (K,)`` and
+    ``translation_std_m (K,)`` (norms: sqrt of the covariance trace, inflated for residuals
+    correlated over ~1 s). ``outliers (T, K)``: valid samples rejected (origin jumps, rotation or
+    position residual above max(6 x median, 2 deg / 2 cm)). ``calibrated (K,)``: False where a
+    tracker had fewer than 10 usable samples; its entries are NaN.
+    """
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    heading_rad: np.ndarray
+    drift: np.ndarray
+    rotation_rms_deg: np.ndarray
+    translation_rms_m: np.ndarray
+    rotation_std_deg: np.ndarray
+    translation_std_m: np.ndarray
+    outliers: np.ndarray
+    calibrated: np.ndarray
+    heading_knots_s: np.ndarray
+    heading_knots_rad: np.ndarray
+    drift_knots_s: np.ndarray
+    drift_knots_m: np.ndarray
+
+    def __post_init__(self):
+        for name in self.__dataclass_fields__:
+            getattr(self, name).setflags(write=False)
+
+    @property
+    def num_trackers(self) -> int:
+        return self.rotations.shape[0]
+
+    def heading_at(self, times_s) -> np.ndarray:
+        """``psi`` (rad) at ``times_s`` (any shape, s on the calibration's timeline); linear
+        between knots, held constant beyond the first and last knot."""
+        t = np.asarray(times_s, dtype=np.float64)
+        return np.interp(t, self.heading_knots_s, self.heading_knots_rad)
+
+    def drift_at(self, times_s) -> np.ndarray:
+        """``d`` (m, tracker world) at ``times_s`` ``(...)`` -> ``(..., 3)``; linear between knots,
+        constant beyond the ends."""
+        t = np.asarray(times_s, dtype=np.float64)
+        return np.stack([np.interp(t, self.drift_knots_s, self.drift_knots_m[:, a]) for a in range(3)], axis=-1)
+
+    def suit_to_tracker_world(self, times_s, rot, pos) -> tuple[np.ndarray, np.ndarray]:
+        """Suit poses into the tracker world: ``(Y(t) R, Y(t) p + d(t))``.
+
+        ``times_s (T,)``; ``rot (T, ..., 4)`` xyzw orientations (suit world), ``pos (T, ..., 3)``
+        positions (suit world, m), any number of middle axes (e.g. segments). Returns the
+        orientations ``(T, ..., 4)`` and positions ``(T, ..., 3)`` in the tracker world.
+        """
+        t = np.asarray(times_s, dtype=np.float64)
+        rot = np.asarray(rot, dtype=np.float64)
+        pos = np.asarray(pos, dtype=np.float64)
+        if t.ndim != 1 or rot.shape[:1] != t.shape or pos.shape[:1] != t.shape or rot.shape[-1] != 4 \
+                or pos.shape[-1] != 3 or rot.shape[:-1] != pos.shape[:-1]:  # fmt: skip
+            raise ValueError(f"expected times (T,), rot (T, ..., 4), pos (T, ..., 3); got {t.shape}, {rot.shape}, "
+                             f"{pos.shape}")  # fmt: skip
+        mid = rot.shape[1:-1]
+        n_mid = int(np.prod(mid)) if mid else 1
+        psi = np.repeat(self.heading_at(t), n_mid)
+        Y = Rotation.from_rotvec(psi[:, None] * np.array([0.0, 1.0, 0.0]))
+        out_rot = (Y * Rotation.from_quat(rot.reshape(-1, 4))).as_quat().reshape(rot.shape)
+        d = np.repeat(self.drift_at(t), n_mid, axis=0)
+        out_pos = (Y.apply(pos.reshape(-1, 3)) + d).reshape(pos.shape)
+        return out_rot, out_pos
+
+    def segment_from_tracker(self, trk_rot, trk_pos, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Segment pose implied by tracker ``k``'s pose, in the **tracker world**:
+        ``R = R_tr M_k^-1``, ``p = p_tr - R m_k`` (this equals ``Y R_seg`` and ``Y p_seg + d``).
+        ``trk_rot (..., 4)`` xyzw, ``trk_pos (..., 3)`` m -> ``(rot (..., 4), pos (..., 3))``."""
+        if not 0 <= k < self.num_trackers:
+            raise ValueError(f"tracker index {k} out of range 0..{self.num_trackers - 1}")
+        if not self.calibrated[k]:
+            raise ValueError(f"tracker {k} is not calibrated (no usable samples)")
+        q = np.asarray(trk_rot, dtype=np.float64)
+        p = np.asarray(trk_pos, dtype=np.float64)
+        if q.shape[-1] != 4 or p.shape[-1] != 3 or q.shape[:-1] != p.shape[:-1]:
+            raise ValueError(f"expected trk_rot (..., 4) and trk_pos (..., 3), got {q.shape} and {p.shape}")
+        r = Rotation.from_quat(q.reshape(-1, 4)) * Rotation.from_quat(self.rotations[k]).inv()
+        pos = p.reshape(-1, 3) - r.apply(np.array(self.translations[k]))
+        return r.as_quat().reshape(q.shape), pos.reshape(p.shape)
+
+    def as_dict(self) -> dict:
+        """JSON-able summary: mounts, fit quality, outlier counts and the heading/drift knots."""
+
+        def lst(a):  # NaN (uncalibrated trackers) -> None, for strict JSON
+            return np.where(np.isfinite(a), a, None).tolist()
+
+        return {
+            "rotations_xyzw": lst(self.rotations),
+            "translations_m": lst(self.translations),
+            "calibrated": self.calibrated.tolist(),
+            "rotation_rms_deg": lst(self.rotation_rms_deg),
+            "translation_rms_m": lst(self.translation_rms_m),
+            "rotation_std_deg": lst(self.rotation_std_deg),
+            "translation_std_m": lst(self.translation_std_m),
+            "outliers_per_tracker": self.outliers.sum(axis=0).astype(int).tolist(),
+            "heading_knots_s": self.heading_knots_s.tolist(),
+            "heading_knots_rad": self.heading_knots_rad.tolist(),
+            "drift_knots_s": self.drift_knots_s.tolist(),
+            "drift_knots_m": self.drift_knots_m.tolist(),
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+class _Knots:
+    """Evenly spaced knots over ``[t0, t1]`` (spacing at most ``spacing``) and the hat-function
+    weights of times on them."""
+
+    def __init__(self, t0: float, t1: float, spacing: float):
+        span = t1 - t0
+        self.n = max(2, math.ceil(span / spacing - 1e-9) + 1)
+        self.t = np.linspace(t0, t1, self.n)
+        self.step = span / (self.n - 1)
+        self.t0 = t0
+
+    def locate(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = (times - self.t0) / self.step
+        j = np.clip(np.floor(x).astype(np.int64), 0, self.n - 2)
+        u = np.clip(x - j, 0.0, 1.0)
+        return j, u
+
+    def normal(self, j, u, w, y=None):
+        """Banded normal matrix (diag, off1) of ``sum w (B c - y)^2`` and its right-hand side."""
+        n = self.n
+        diag = np.bincount(j, w * (1 - u) ** 2, n) + np.bincount(j + 1, w * u * u, n)
+        off1 = np.bincount(j, w * u * (1 - u), n)[: n - 1]
+        rhs = None
+        if y is not None:
+            rhs = np.bincount(j, w * (1 - u) * y, n) + np.bincount(j + 1, w * u * y, n)
+        return diag, off1, rhs
+
+
+def _yaw_matrices(psi: np.ndarray) -> np.ndarray:
+    c, s = np.cos(psi), np.sin(psi)
+    Y = np.zeros(psi.shape + (3, 3))
+    Y[..., 0, 0] = c
+    Y[..., 0, 2] = s
+    Y[..., 1, 1] = 1.0
+    Y[..., 2, 0] = -s
+    Y[..., 2, 2] = c
+    return Y
+
+
+def _project_so3(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest rotations ``(..., 3, 3)`` to ``A`` (maximising ``tr(R^T A)``) and that maximum."""
+    U, S, Vt = np.linalg.svd(A)
+    det = np.linalg.det(U @ Vt)
+    D = np.ones(A.shape[:-2] + (3,))
+    D[..., 2] = np.sign(det)
+    D[D == 0] = 1.0
+    R = (U * D[..., None, :]) @ Vt
+    return R, np.sum(S * D, axis=-1)
+
+
+def _rot_residual(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angle (rad) and rotation vector of rotation matrices ``E (..., 3, 3)`` (accurate near 0)."""
+    v = 0.5 * np.stack([E[..., 2, 1] - E[..., 1, 2], E[..., 0, 2] - E[..., 2, 0], E[..., 1, 0] - E[..., 0, 1]], -1)
+    sin = np.linalg.norm(v, axis=-1)
+    cos = 0.5 * (np.trace(E, axis1=-2, axis2=-1) - 1.0)
+    ang = np.arctan2(sin, cos)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(sin > 1e-12, ang / sin, 1.0)
+    return ang, v * scale[..., None]
+
+
+def _matrices(name: str, q: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(T, K, 3, 3)`` rotation matrices of quaternions ``(T, K, 4)``; identity where not valid."""
+    qv = q[valid]
+    norm = np.linalg.norm(qv, axis=-1)
+    if not np.all(np.isfinite(qv)) or np.any(norm < 1e-9):
+        raise ValueError(f"{name} has non-finite or zero-norm quaternions at valid samples")
+    out = np.broadcast_to(np.eye(3), q.shape[:-1] + (3, 3)).copy()
+    out[valid] = Rotation.from_quat(qv).as_matrix()
+    return out
+
+
+def _flag(residual: np.ndarray, pool: np.ndarray, floor: float) -> np.ndarray:
+    """Per tracker: samples of ``pool`` whose ``residual`` exceeds max(6 x median, floor)."""
+    out = np.zeros_like(pool)
+    for k in range(pool.shape[1]):
+        r = residual[pool[:, k], k]
+        if r.size == 0:
+            continue
+        thr = max(_OUTLIER_FACTOR * float(np.median(r)), floor)
+        out[:, k] = pool[:, k] & (residual[:, k] > thr)
+    return out
+
+
+def _mean_cov(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Covariance ``(D, D)`` of the mean of samples ``v (n, D)`` at times ``t (n,)``: the white
+    estimate, inflated when ~1-s block means scatter more than white noise would."""
+    n = v.shape[0]
+    if n < 2:
+        return np.full((v.shape[1], v.shape[1]), np.nan)
+    white = np.atleast_2d(np.cov(v, rowvar=False)) / n
+    blk = np.floor((t - t[0]) / _BLOCK_S).astype(np.int64)
+    nb = int(blk.max()) + 1
+    counts = np.bincount(blk, minlength=nb)
+    ok = counts > 0
+    if ok.sum() >= 8:
+        means = np.stack([np.bincount(blk, v[:, d], nb)[ok] / counts[ok] for d in range(v.shape[1])], -1)
+        cnt = counts[ok].astype(np.float64)
+        dev = means - np.average(means, axis=0, weights=cnt)
+        cov_blocks = (dev * cnt[:, None]).T @ dev / n / (ok.sum() - 1)
+        tr_w, tr_b = np.trace(white), np.trace(cov_blocks)
+        if tr_w > 0 and tr_b > tr_w:
+            white = white * (tr_b / tr_w)
+    return white
+
+
+def _init_heading(Rs: np.ndarray, Rt: np.ndarray, w: np.ndarray) -> float:
+    """Constant heading maximising the summed chordal agreement with every tracker's best mount:
+    ``sum_k max_M tr(M^T sum_t (Y R_seg)^T R_tr)``, on a 0.5-degree grid."""
+    Cm = np.diag([1.0, 0.0, 1.0])
+    Sm = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    Em = np.diag([0.0, 1.0, 0.0])
+    # Y(psi)^T = cos(psi) Cm + sin(psi) Sm + Em
+    parts = [np.einsum("tk,tkji,jl,tklm->kim", w, Rs, P, Rt, optimize=True) for P in (Cm, Sm, Em)]
+    psi = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    A = (np.cos(psi)[:, None, None, None] * parts[0] + np.sin(psi)[:, None, None, None] * parts[1]
+         + parts[2][None])  # fmt: skip
+    _, score = _project_so3(A)
+    return float(psi[int(np.argmax(score.sum(axis=1)))])
+
+
+def _fit_heading(knots: _Knots, j, u, Q: np.ndarray, w: np.ndarray, psi_now: np.ndarray) -> np.ndarray:
+    """Piecewise-linear heading (knot values, rad) from ``Q (T, K, 3, 3) ≈ Y(psi)`` per sample:
+    each sample's best yaw ``atan2(Q02 - Q20, Q00 + Q22)``, unwrapped next to ``psi_now (T,)``,
+    weighted least squares with a tiny second-difference regulariser."""
+    a = Q[..., 0, 0] + Q[..., 2, 2]
+    b = Q[..., 0, 2] - Q[..., 2, 0]
+    yaw = np.arctan2(b, a)
+    ww = w * 0.5 * np.hypot(a, b)
+    target = psi_now[:, None] + (yaw - psi_now[:, None] + math.pi) % (2 * math.pi) - math.pi
+    K = w.shape[1]
+    jj, uu = np.repeat(j, K), np.repeat(u, K)
+    diag, off1, rhs = knots.normal(jj, uu, ww.ravel(), target.ravel())
+    n = knots.n
+    off2 = np.zeros(max(n - 2, 0))
+    lam = 1e-3 * max(float(diag.sum()) / n, 1e-12)
+    if n >= 3:  # second differences: D2^T D2
+        d2 = np.zeros(n)
+        o1 = np.zeros(n - 1)
+        for c, e in ((0, 1.0), (1, -2.0), (2, 1.0)):
+            d2[c: n - 2 + c] += e * e
+        o1[: n - 2] += -2.0
+        o1[1: n - 1] += -2.0
+        diag = diag + lam * d2
+        off1 = off1 + lam * o1
+        off2 = off2 + lam * 1.0
+    diag = diag + 1e-9 * lam
+    ab = np.zeros((3, n))
+    ab[2] = diag
+    ab[1, 1:] = off1
+    if n >= 3:
+        ab[0, 2:] = off2
+    return solveh_banded(ab, rhs)
+
+
+def _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid):
+    t = np.asarray(times_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise ValueError(f"times_s must be 1-D (T,), got shape {t.shape}")
+    T = t.shape[0]
+    arrays = {}
+    for name, arr, last in (("seg_rot", seg_rot, 4), ("seg_pos", seg_pos, 3), ("trk_rot", trk_rot, 4),
+                            ("trk_pos", trk_pos, 3)):  # fmt: skip
+        a = np.asarray(arr, dtype=np.float64)
+        if a.ndim != 3 or a.shape[0] != T or a.shape[2] != last:
+            raise ValueError(f"{name} must have shape (T={T}, K, {last}), got {a.shape}")
+        arrays[name] = a
+    K = arrays["seg_rot"].shape[1]
+    if K == 0:
+        raise ValueError("need at least one tracker (K = 0)")
+    for name, a in arrays.items():
+        if a.shape[1] != K:
+            raise ValueError(f"{name} has {a.shape[1]} trackers, seg_rot has {K}")
+    v = np.asarray(valid)
+    if v.dtype != bool or v.shape != (T, K):
+        raise ValueError(f"valid must be a bool array of shape ({T}, {K}), got {v.dtype} {v.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError("times_s has non-finite values")
+    if T >= 2 and np.any(np.diff(t) <= 0):
+        raise ValueError("times_s must increase strictly")
+    for name in ("seg_pos", "trk_pos"):
+        if not np.all(np.isfinite(arrays[name][v])):
+            raise ValueError(f"{name} has non-finite values at valid samples")
+    return t, arrays["seg_rot"], arrays["seg_pos"], arrays["trk_rot"], arrays["trk_pos"], v
+
+
+def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_spacing_s: float = 1.0,
+                     drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = 0.05 / math.sqrt(60.0),
+                     rounds: int = 4) -> MountCalibration:  # fmt: skip
+    """Estimate tracker mounts, the suit's heading and its position drift (model in the module
+    docstring).
+
+    Inputs, ``T`` samples on one timeline, ``K`` trackers (tracker ``k`` on segment ``k``):
+    ``times_s (T,)`` s, strictly increasing; ``seg_rot (T, K, 4)`` xyzw segment -> suit world and
+    ``seg_pos (T, K, 3)`` segment origins (suit world, m); ``trk_rot (T, K, 4)`` xyzw and
+    ``trk_pos (T, K, 3)`` m tracker poses in the tracker world; ``valid (T, K)`` bool (suit and
+    tracker sample both usable). Values at invalid samples are ignored (may be NaN).
+
+    Method: the heading starts from the best constant (grid search over the summed chordal fit);
+    then ``rounds`` times (a) ``M_k`` = chordal mean of ``(Y R_seg)^-1 R_tr`` and (b) ``psi`` =
+    piecewise-linear fit (knots every ``knot_spacing_s``) of the yaw of ``R_tr M_k^-1 R_seg^-1``,
+    with rotation outliers rejected; then ``m_k`` and ``d`` (knots every ``drift_knot_spacing_s``,
+    random-walk prior of ``drift_rate_m_per_sqrt_s`` per axis, the MAP for a drifting position) by
+    sparse linear least squares with Huber reweighting, rejecting position outliers; the whole is
+    repeated once if new outliers appeared. Samples at exactly the origin with ``valid`` True
+    (trackers that lost tracking) are outliers from the start. A weak prior (``m ~ N(0, 1 m^2)``)
+    keeps a segment that hardly rotates solvable, with a large ``translation_std_m``.
+
+    Returns a :class:`MountCalibration`. A tracker with fewer than 10 usable samples gets NaN
+    entries and ``calibrated[k] = False``. Raises ``ValueError`` on malformed input (shapes, NaN
+    at valid samples, non-increasing times) or if fewer than 2 s of valid data remain.
+    """
+    t, q_seg, p_seg, q_trk, p_trk, valid = _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid)
+    for name, val in (("knot_spacing_s", knot_spacing_s), ("drift_knot_spacing_s", drift_knot_spacing_s),
+                      ("drift_rate_m_per_sqrt_s", drift_rate_m_per_sqrt_s)):  # fmt: skip
+        if not (val > 0 and math.isfinite(val)):
+            raise ValueError(f"{name} must be positive and finite, got {val}")
+    T, K = valid.shape
+    frames = np.flatnonzero(valid.any(axis=1))
+    dt = float(np.median(np.diff(t))) if T >= 2 else 0.0
+    duration = frames.size * dt
+    if T < 2 or duration < _MIN_DURATION_S:
+        raise ValueError(f"only {duration:.2f} s of valid data; need at least {_MIN_DURATION_S} s to calibrate mounts")
+
+    Rs = _matrices("seg_rot", q_seg, valid)
+    Rt = _matrices("trk_rot", q_trk, valid)
+    origin = valid & np.all(p_trk == 0.0, axis=-1)
+    use = valid & ~origin
+    if use.sum() < _MIN_SAMPLES:
+        raise ValueError("no tracker has usable samples (all invalid or at the origin)")
+
+    hk = _Knots(float(t[0]), float(t[-1]), knot_spacing_s)
+    hj, hu = hk.locate(t)
+    dk = _Knots(float(t[0]), float(t[-1]), drift_knot_spacing_s)
+    dj, du = dk.locate(t)
+
+    psi_knots = np.full(hk.n, _init_heading(Rs, Rt, use.astype(np.float64)))
+    rot_out = np.zeros_like(valid)
+    trans_out = np.zeros_like(valid)
+    M = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
+    m = np.zeros((K, 3))
+    d_knots = np.zeros((dk.n, 3))
+    cov_m = np.full((K, 3, 3), np.nan)
+    for outer in range(2):
+        inl = use & ~rot_out & ~trans_out
+        for _ in range(max(1, int(rounds))):
+            psi = psi_knots[hj] * (1 - hu) + psi_knots[hj + 1] * hu
+            G = _yaw_matrices(psi)[:, None] @ Rs  # Y R_seg (T, K, 3, 3)
+            A = np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True)
+            M, _ = _project_so3(A)
+            Q = Rt @ np.swapaxes(M, -1, -2)[None] @ np.swapaxes(Rs, -1, -2)
+            psi_knots = _fit_heading(hk, hj, hu, Q, inl.astype(np.float64), psi)
+            psi = psi_knots[hj] * (1 - hu) + psi_knots[hj + 1] * hu
+            G = _yaw_matrices(psi)[:, None] @ Rs
+            ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
+            rot_out = _flag(ang, use & ~trans_out, _ROT_FLOOR_RAD)
+            inl = use & ~rot_out & ~trans_out
+        A = np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True)
+        M, _ = _project_so3(A)
+
+        # translations: y = p_tr - Y p_seg = d(t) + G m_k
+        Yt = _yaw_matrices(psi)
+        y = np.where(valid[..., None], p_trk - np.einsum("tij,tkj->tki", Yt, np.where(valid[..., None], p_seg, 0.0)),
+                     0.0)  # fmt: skip
+        sigma = np.full(K, 0.01)
+        huber = np.ones((T, K))
+        prev_trans = trans_out.copy()
+        for _ in range(4):
+            inl = use & ~rot_out & ~trans_out
+            w = inl * huber / sigma[None] ** 2
+            m, d_knots, cov_m = _solve_translation(dk, dj, du, G, y, w, drift_rate_m_per_sqrt_s)
+            d_t = d_knots[dj] * (1 - du)[:, None] + d_knots[dj + 1] * du[:, None]
+            e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
+            en = np.linalg.norm(e, axis=-1)
+            trans_out = _flag(en, use & ~rot_out, _TRANS_FLOOR_M)
+            inl = use & ~rot_out & ~trans_out
+            for k in range(K):
+                ek = e[inl[:, k], k]
+                if ek.shape[0] >= _MIN_SAMPLES:
+                    sigma[k] = max(1.4826 * float(np.median(np.abs(ek))), 1e-4)
+                    c = 3.0 * float(np.median(en[inl[:, k], k]))
+                    huber[:, k] = np.minimum(1.0, c / np.maximum(en[:, k], 1e-12))
+        if np.array_equal(trans_out, prev_trans) or outer == 1:
+            break
+
+    inl = use & ~rot_out & ~trans_out
+    counts = inl.sum(axis=0)
+    calibrated = counts >= _MIN_SAMPLES
+    ang, rv = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
+    rot_rms = np.full(K, np.nan)
+    rot_std = np.full(K, np.nan)
+    tr_rms = np.full(K, np.nan)
+    tr_std = np.full(K, np.nan)
+    for k in np.flatnonzero(calibrated):
+        sel = inl[:, k]
+        rot_rms[k] = math.degrees(math.sqrt(float(np.mean(ang[sel, k] ** 2))))
+        rot_std[k] = math.degrees(math.sqrt(max(float(np.trace(_mean_cov(rv[sel, k], t[sel]))), 0.0)))
+        tr_rms[k] = math.sqrt(float(np.mean(en[sel, k] ** 2)))
+        ek = e[sel, k]
+        white = np.atleast_2d(np.cov(ek, rowvar=False)) / ek.shape[0]
+        infl = float(np.trace(_mean_cov(ek, t[sel])) / np.trace(white)) if np.trace(white) > 0 else 1.0
+        tr_std[k] = math.sqrt(max(float(np.trace(cov_m[k])), 0.0) * max(infl, 1.0))
+    rotations = Rotation.from_matrix(M).as_quat()
+    translations = m.copy()
+    rotations[~calibrated] = np.nan
+    translations[~calibrated] = np.nan
+    return MountCalibration(
+        rotations=rotations, translations=translations, heading_rad=psi.copy(), drift=d_t.copy(),
+        rotation_rms_deg=rot_rms, translation_rms_m=tr_rms, rotation_std_deg=rot_std, translation_std_m=tr_std,
+        outliers=valid & ~inl, calibrated=calibrated, heading_knots_s=hk.t.copy(), heading_knots_rad=psi_knots.copy(),
+        drift_knots_s=dk.t.copy(), drift_knots_m=d_knots.copy(),
+    )  # fmt: skip
+
+
+def _solve_translation(knots: _Knots, j, u, G, y, w, rate):
+    """Weighted least squares for ``m (K, 3)`` and drift knots ``(J, 3)`` in
+    ``y_tk ≈ d(t) + G_tk m_k`` (weights ``w (T, K)`` in 1/m^2) with a random-walk prior on the
+    knots (increment std ``rate * sqrt(step)``) and ``m ~ N(0, 1 m^2)``. Returns ``m``, knots
+    and the covariance ``(K, 3, 3)`` of ``m``. The drift block is banded (same for each axis);
+    ``m`` comes from its Schur complement."""
+    T, K = w.shape
+    n = knots.n
+    jj, uu = np.repeat(j, K), np.repeat(u, K)
+    wf = w.ravel()
+    diag, off1, _ = knots.normal(jj, uu, wf)
+    prior = 1.0 / (rate * rate * knots.step)
+    diag = diag.copy()
+    diag[:-1] += prior
+    diag[1:] += prior
+    off1 = off1 - prior
+    diag += 1e-12 * max(float(diag.max()), 1.0)
+    ab = np.zeros((2, n))
+    ab[1] = diag
+    ab[0, 1:] = off1
+    Gf = G.reshape(T * K, 3, 3)
+    yf = y.reshape(T * K, 3)
+    kk = np.tile(np.arange(K), T)
+    # Ndm[a][knot, k*3 + c] = sum w B_knot G[a, c]
+    Ndm = np.zeros((3, n, K * 3))
+    bd = np.zeros((3, n))
+    for a in range(3):
+        bd[a] = np.bincount(jj, wf * (1 - uu) * yf[:, a], n) + np.bincount(jj + 1, wf * uu * yf[:, a], n)
+        for c in range(3):
+            val = wf * Gf[:, a, c]
+            col = kk * 3 + c
+            Ndm[a] += np.bincount(jj * K * 3 + col, val * (1 - uu), n * K * 3).reshape(n, K * 3)
+            Ndm[a] += np.bincount((jj + 1) * K * 3 + col, val * uu, n * K * 3).reshape(n, K * 3)
+    wk = np.bincount(kk, wf, K)
+    bm = np.stack([np.bincount(kk, wf * np.einsum("nji,nj->ni", Gf, yf)[:, c], K) for c in range(3)], -1).ravel()
+    S = np.diag(np.repeat(wk, 3) + 1.0 / _MOUNT_PRIOR_M**2)
+    rhs = bm.copy()
+    X = np.empty_like(Ndm)
+    z = np.empty_like(bd)
+    for a in range(3):
+        sol = solveh_banded(ab, np.column_stack([Ndm[a], bd[a]]))
+        X[a], z[a] = sol[:, :-1], sol[:, -1]
+        S -= Ndm[a].T @ X[a]
+        rhs -= Ndm[a].T @ z[a]
+    S = 0.5 * (S + S.T)
+    cov = np.linalg.inv(S)
+    mv = cov @ rhs
+    d_knots = np.stack([z[a] - X[a] @ mv for a in range(3)], -1)
+    cov_k = np.stack([cov[3 * k: 3 * k + 3, 3 * k: 3 * k + 3] for k in range(K)])
+    return mv.reshape(K, 3), d_knots, cov_k

@@ -1,0 +1,303 @@
+"""Sync stage: every stream of a take on one timeline, with the estimates and their uncertainty.
+
+Timeline
+    seconds on the **reference suit's** clock (the first actor's suit), 0 at its first sample;
+    frames at ``fps`` over the span every suit covers. Another stream's device time maps onto it
+    through the host clock: ``device -> host`` by its own robust lower-envelope line fit
+    (:func:`~dualhuman_builder.sync.clock.fit_clock`: offset and drift, delayed packets rejected),
+    then ``host -> reference device`` by the inverse of the reference's fit.
+
+Trackers
+    the host clock cannot see a difference of transport latency between the suit and the trackers,
+    so each tracker's residual lag against the suit segment it is strapped to is measured by
+    cross-correlating angular-speed magnitudes (independent of how the tracker is mounted,
+    :func:`~dualhuman_builder.sync.lag.estimate_lag`); trackers of one source share a clock, so
+    their lags are combined into one correction. Then each tracker's mounting rotation and offset on
+    its segment, the suit's heading against the tracker world and the suit's position drift are
+    solved by least squares (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`).
+
+Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
+``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
+``actor`` and ``segment`` (from the rig).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.errors import DualhumanError
+from dualhuman_builder.fileio import load_npz, save_npz
+from dualhuman_builder.sync.resample import resample_linear, resample_quat
+
+SYNC_VERSION = 1
+#: A frame is valid only when samples on both sides lie within this many seconds of each other.
+MAX_GAP_S = 0.05
+#: Knot spacing (s) of the suit position drift solved with the mounts: the drift is slow, and
+#: finer knots let it absorb the suit's limb errors and the mounts' offsets.
+MOUNT_DRIFT_KNOTS_S = 1.0
+
+
+class SyncError(DualhumanError):
+    """A take cannot be put on one timeline (no suit, too short, no motion to correlate...)."""
+
+
+@dataclass
+class ActorStreams:
+    """One actor's streams on the timeline (``T`` frames).
+
+    ``suit_rot (T, 23, 4)`` xyzw and ``suit_pos (T, 23, 3)`` m in the suit's world (MVN segment
+    order), ``suit_valid (T,)``; trackers ``serials (K,)``, ``segments (K,)`` (MVN names),
+    ``trk_rot (T, K, 4)``, ``trk_pos (T, K, 3)`` in the tracker world, ``trk_valid (T, K)``.
+    ``mounts``: the :class:`~dualhuman_builder.sync.mount.MountCalibration` (None without trackers).
+    """
+
+    actor: str
+    suit_rot: np.ndarray
+    suit_pos: np.ndarray
+    suit_valid: np.ndarray
+    serials: tuple[str, ...] = ()
+    segments: tuple[str, ...] = ()
+    trk_rot: np.ndarray | None = None
+    trk_pos: np.ndarray | None = None
+    trk_valid: np.ndarray | None = None
+    mounts: Any = None
+
+
+@dataclass
+class SyncResult:
+    """``times_s (T,)`` frame times on the timeline; ``actors`` in rig order; ``report``: the
+    JSON-able estimates (clocks, lags, mounts) with uncertainties."""
+
+    fps: float
+    times_s: np.ndarray
+    actors: list[ActorStreams]
+    report: dict = field(default_factory=dict)
+
+    def actor(self, name: str) -> ActorStreams:
+        for a in self.actors:
+            if a.actor == name:
+                return a
+        raise KeyError(f"no actor {name!r} in the synced take; it has {[a.actor for a in self.actors]}")
+
+    def save(self, path: str | Path) -> Path:
+        arrays: dict[str, np.ndarray] = {"times_s": self.times_s}
+        for a in self.actors:
+            p = f"{a.actor}/"
+            arrays.update({p + "suit_rot": a.suit_rot, p + "suit_pos": a.suit_pos, p + "suit_valid": a.suit_valid})
+            if a.serials:
+                arrays.update({p + "trk_rot": a.trk_rot, p + "trk_pos": a.trk_pos, p + "trk_valid": a.trk_valid})
+                if a.mounts is not None:
+                    arrays.update({f"{p}mount/{k}": getattr(a.mounts, k) for k in a.mounts.__dataclass_fields__})
+        meta = {"fps": self.fps, "actors": [{"actor": a.actor, "serials": list(a.serials), "segments": list(a.segments)}
+                                            for a in self.actors], "report": self.report}  # fmt: skip
+        return save_npz(path, "SyncResult", SYNC_VERSION, arrays, meta)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SyncResult":
+        from dualhuman_builder.sync.mount import MountCalibration
+
+        arrays, meta = load_npz(path, "SyncResult", SYNC_VERSION, required=("times_s",))
+        actors = []
+        for info in meta["actors"]:
+            p = f"{info['actor']}/"
+            a = ActorStreams(info["actor"], arrays[p + "suit_rot"], arrays[p + "suit_pos"], arrays[p + "suit_valid"],
+                             tuple(info["serials"]), tuple(info["segments"]))  # fmt: skip
+            if a.serials:
+                a.trk_rot, a.trk_pos, a.trk_valid = arrays[p + "trk_rot"], arrays[p + "trk_pos"], arrays[p + "trk_valid"]
+                if f"{p}mount/rotations" in arrays:
+                    a.mounts = MountCalibration(**{k: arrays[f"{p}mount/{k}"] for k in MountCalibration.__dataclass_fields__})
+            actors.append(a)
+        return cls(float(meta["fps"]), arrays["times_s"], actors, meta.get("report", {}))
+
+
+# ------------------------------------------------------------------------------------------
+@dataclass
+class _Stream:
+    key: str
+    actor: str | None
+    source: str
+    device_ns: np.ndarray  # float64, device clock
+    host_ns: np.ndarray
+    cols: dict
+
+
+def _suit_device_ns(cols: dict) -> np.ndarray:
+    """MVN time codes are whole milliseconds; the sample counter is exact. A least-squares line of
+    time code against counter gives each sample's device time without the 1 ms steps."""
+    counter = np.asarray(cols["sample_counter"], dtype=np.float64)
+    tc = np.asarray(cols["device_time_ns"], dtype=np.float64)
+    if len(counter) >= 10 and np.ptp(counter) > 0:
+        slope, icpt = np.polyfit(counter - counter[0], tc - tc[0], 1)
+        if slope > 0:
+            return tc[0] + icpt + slope * (counter - counter[0])
+    return tc
+
+
+def _streams(columns: dict) -> tuple[list[_Stream], list[_Stream]]:
+    suits, trackers = [], []
+    for key, ch in columns.items():
+        meta = ch.metadata or {}
+        if key.endswith("/SuitFrame") and ch.count:
+            actor = meta.get("actor") or f"character{int(ch.columns['character'][0])}"
+            suits.append(_Stream(key, actor, meta.get("source", ""), _suit_device_ns(ch.columns),
+                                 np.asarray(ch.columns["host_time_ns"], dtype=np.float64), ch.columns))  # fmt: skip
+        elif key.endswith("/TrackerSample") and ch.count and meta.get("actor") and meta.get("segment"):
+            trackers.append(_Stream(key, meta["actor"], meta.get("source", ""),
+                                    np.asarray(ch.columns["device_time_ns"], dtype=np.float64),
+                                    np.asarray(ch.columns["host_time_ns"], dtype=np.float64), ch.columns))  # fmt: skip
+    suits.sort(key=lambda s: (s.source, int(s.cols["character"][0])))  # MVN character order
+    return suits, trackers
+
+
+def describe_mount(m, k: int) -> dict:
+    """Tracker ``k`` of a MountCalibration, for people: rotation vector (deg), offset (mm), fit
+    residuals and 1-sigma uncertainties."""
+    from scipy.spatial.transform import Rotation
+
+    if not m.calibrated[k]:
+        return {"calibrated": False}
+    return {"rotation_deg": np.round(np.degrees(Rotation.from_quat(m.rotations[k]).as_rotvec()), 3).tolist(),
+            "translation_mm": np.round(m.translations[k] * 1000, 2).tolist(),
+            "rotation_rms_deg": round(float(m.rotation_rms_deg[k]), 3), "translation_rms_mm": round(float(m.translation_rms_m[k]) * 1000, 2),
+            "rotation_std_deg": round(float(m.rotation_std_deg[k]), 4), "translation_std_mm": round(float(m.translation_std_m[k]) * 1000, 3),
+            "rejected_samples": int(m.outliers[:, k].sum())}  # fmt: skip
+
+
+def _ms(x: float) -> float:
+    return round(float(x) * 1e3, 4)
+
+
+def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = None, use_trackers: bool = True,
+                progress: Callable[[str], None] | None = None) -> SyncResult:  # fmt: skip
+    """Put a take's suits and trackers on one timeline at ``fps`` (see the module docstring).
+
+    ``columns``: :func:`read_columns` of the take. ``actors``: which actors, in order (default: the
+    suits' order); every one needs a suit. ``use_trackers=False`` ignores trackers (to measure what
+    fusion buys)."""
+    from dualhuman_builder.sync.clock import fit_clock
+    from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag
+    from dualhuman_builder.sync.mount import calibrate_mounts
+
+    say = progress or (lambda _m: None)
+    if not fps > 0:
+        raise SyncError(f"fps must be positive, got {fps}")
+    suits, trackers = _streams(columns)
+    if not suits:
+        raise SyncError("the take has no suit stream (suits/mvn/<character>/SuitFrame)",
+                        fix="record the suits, or bind actors to MVN characters with --actor NAME=SOURCE#CHARACTER")  # fmt: skip
+    by_actor = {s.actor: s for s in suits}
+    names = list(actors) if actors else [s.actor for s in suits]
+    missing = [a for a in names if a not in by_actor]
+    if missing:
+        raise SyncError(f"actors {missing} have no suit stream in the take; suits are worn by {sorted(by_actor)}",
+                        fix="check the rig's actor bindings (character numbers)")  # fmt: skip
+    if not use_trackers:
+        trackers = []
+    trackers = [t for t in trackers if t.actor in names]
+
+    # ---- clocks
+    report: dict[str, Any] = {"reference": by_actor[names[0]].key, "clocks": {}, "lags": {}, "mounts": {}}
+    fits = {}
+    for s in [*suits, *trackers]:
+        try:
+            fits[s.key] = fit_clock(s.device_ns, s.host_ns)
+        except ValueError as e:
+            raise SyncError(f"{s.key}: cannot fit its clock: {e}") from None
+    ref = by_actor[names[0]]
+    ref_fit = fits[ref.key]
+    ref0 = float(ref.device_ns[0])
+
+    def to_timeline(key: str, device_ns: np.ndarray) -> np.ndarray:
+        if key == ref.key:
+            return (np.asarray(device_ns, dtype=np.float64) - ref0) * 1e-9
+        return (ref_fit.to_device(fits[key].to_host(device_ns)) - ref0) * 1e-9
+
+    # the span every suit covers
+    t_suit = {s.actor: to_timeline(s.key, s.device_ns) for s in suits if s.actor in names}
+    start = max(t[0] for t in t_suit.values())
+    end = min(t[-1] for t in t_suit.values())
+    if end - start < 2.0 / fps:
+        raise SyncError(f"the suits overlap for {max(end - start, 0):.3f} s only; nothing to fit")
+    k0 = int(np.ceil(start * fps - 1e-9))
+    times = np.arange(k0, int(np.floor(end * fps + 1e-9)) + 1) / fps
+    say(f"timeline: {len(times)} frames at {fps:g} fps ({times[0]:.3f}-{times[-1]:.3f} s on {ref.key})")
+
+    # ---- tracker lags against their segments, combined per source (one clock per source)
+    t_trk = {t.key: to_timeline(t.key, t.device_ns) for t in trackers}
+    lags_by_source: dict[str, list] = {}
+    for t in trackers:
+        s = by_actor[t.actor]
+        seg = MVN_SEGMENTS.index(columns[t.key].metadata["segment"])
+        valid = np.asarray(t.cols["valid"], bool)
+        try:
+            ta, sa = angular_speed(np.round(t_suit[s.actor] * 1e9).astype(np.int64), s.cols["orientations"][:, seg])
+            tb, sb = angular_speed(np.round(t_trk[t.key] * 1e9).astype(np.int64), t.cols["orientation"], valid)
+            est = estimate_lag(ta, sa, tb, sb)
+        except ValueError as e:
+            report["lags"][t.key] = {"error": str(e)}
+            continue
+        report["lags"][t.key] = {"lag_ms": _ms(est.lag_ns * 1e-9), "std_ms": _ms(est.std_ns * 1e-9), "peak": round(float(est.peak), 4)}
+        lags_by_source.setdefault(t.source, []).append(est)
+    lag_s = {}
+    for source, ests in lags_by_source.items():
+        comb = combine_lags(ests)
+        lag_s[source] = comb.lag_ns * 1e-9
+        report["lags"][f"source:{source}"] = {"lag_ms": _ms(lag_s[source]), "std_ms": _ms(comb.std_ns * 1e-9), "trackers": len(ests)}
+    sources_without = {t.source for t in trackers} - set(lag_s)
+    if sources_without:
+        report["warnings"] = [f"no tracker of source {s!r} moved enough to measure its lag; host-clock alignment only"
+                              for s in sorted(sources_without)]  # fmt: skip
+
+    # ---- clocks against the timeline (device time at timeline 0 and drift), after the lag
+    for s in [*suits, *trackers]:
+        group = s.key if s in suits else f"source:{s.source}"
+        if group in report["clocks"]:
+            continue
+        d = np.array([s.device_ns[0], s.device_ns[-1]])
+        tl = to_timeline(s.key, d) - lag_s.get(s.source, 0.0) * (s in trackers)
+        rate = (d[1] - d[0]) * 1e-9 / (tl[1] - tl[0])  # device seconds per timeline second
+        offset_s = d[0] * 1e-9 - rate * tl[0]  # device reading at timeline 0
+        f = fits[s.key]
+        report["clocks"][group] = {"offset_s": round(float(offset_s), 7), "drift_ppm": round((rate - 1.0) * 1e6, 3),
+                                   "host_fit": f.as_dict(), "lag_correction_ms": _ms(lag_s.get(s.source, 0.0)) if s in trackers else 0.0}  # fmt: skip
+
+    # ---- resample
+    out = []
+    for name in names:
+        s = by_actor[name]
+        rot, ok_r = resample_quat(t_suit[name], np.asarray(s.cols["orientations"]), times, max_gap_s=MAX_GAP_S)
+        pos, ok_p = resample_linear(t_suit[name], np.asarray(s.cols["positions"]), times, max_gap_s=MAX_GAP_S)
+        a = ActorStreams(name, rot, pos, ok_r & ok_p)
+        mine = [t for t in trackers if t.actor == name]
+        if mine:
+            K = len(mine)
+            a.serials = tuple(t.key.split("/")[-2] for t in mine)  # trackers/vive/<serial>/TrackerSample
+            a.segments = tuple(columns[t.key].metadata["segment"] for t in mine)
+            a.trk_rot = np.full((len(times), K, 4), np.nan)
+            a.trk_pos = np.full((len(times), K, 3), np.nan)
+            a.trk_valid = np.zeros((len(times), K), bool)
+            for k, t in enumerate(mine):
+                tt = t_trk[t.key] - lag_s.get(t.source, 0.0)
+                valid = np.asarray(t.cols["valid"], bool)
+                a.trk_rot[:, k], ok1 = resample_quat(tt, np.asarray(t.cols["orientation"]), times, valid, MAX_GAP_S)
+                a.trk_pos[:, k], ok2 = resample_linear(tt, np.asarray(t.cols["position"]), times, valid, MAX_GAP_S)
+                a.trk_valid[:, k] = ok1 & ok2
+            seg_idx = [MVN_SEGMENTS.index(g) for g in a.segments]
+            usable = a.trk_valid & a.suit_valid[:, None]
+            try:
+                a.mounts = calibrate_mounts(times, np.nan_to_num(a.suit_rot[:, seg_idx]), np.nan_to_num(a.suit_pos[:, seg_idx]),
+                                            np.nan_to_num(a.trk_rot), np.nan_to_num(a.trk_pos), usable,
+                                            drift_knot_spacing_s=MOUNT_DRIFT_KNOTS_S)  # fmt: skip
+            except ValueError as e:
+                report.setdefault("warnings", []).append(f"{name}: tracker mounts not calibrated ({e}); fitting without trackers")
+                a.serials, a.segments, a.trk_rot, a.trk_pos, a.trk_valid = (), (), None, None, None
+            else:
+                report["mounts"][name] = {serial: describe_mount(a.mounts, k) for k, serial in enumerate(a.serials)}
+                say(f"{name}: {K} trackers calibrated on their segments")
+        out.append(a)
+    return SyncResult(float(fps), times, out, report)
