@@ -21,7 +21,11 @@ What it does now (each step goes through the workspace, so a second run is a no-
    sources into ``take.mcap`` (:mod:`dualhuman_builder.capture`), checked, and replayed to verify
    that re-decoding gives the recorded samples bit for bit (``capture.json``).
 
-Later stages (sync, fit, contacts, render, export) join here as they land; the demo always runs
+6. runs ``sync``, ``fuse`` and ``fit`` on that take (:mod:`dualhuman_builder.fit.stages`): clocks
+   and tracker mounts (``sync.json``), fused skeletons, both actors' anny bodies fitted jointly
+   with the collision term (``bodies.npz``, ``shapes.json``) and ``report.html`` / ``report.png``.
+
+Later stages (contacts, render, export) join here as they land; the demo always runs
 the whole pipeline that exists.
 """
 
@@ -149,6 +153,16 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
                            params={"seed": DEMO_SCENE["seed"], "speed": DEMO_CAPTURE_SPEED},
                            depends_on=[("scene", DEMO_SEQUENCE)])  # fmt: skip
         _note(result, log, "capture", res)
+
+        # sync -> fuse -> fit on the recorded take (take-level stages reading the capture artifact)
+        from dualhuman_builder.fit.stages import run_fit
+
+        take_file = ws.artifacts("capture", DEMO_TAKE, DEMO_SEQUENCE)["take.mcap"]
+        res = run_fit(ws, DEMO_TAKE, log=log, fps=DEMO_SCENE["fps"], take_file=take_file,
+                      depends_on=[("capture", DEMO_SEQUENCE)])  # fmt: skip
+        for stage in ("sync", "fuse"):
+            result.outputs.update(ws.artifacts(stage, DEMO_TAKE))
+        _note(result, log, "fit", res)
     result.seconds = time.perf_counter() - t0
     return result
 

@@ -27,10 +27,12 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     ws_path = tmp_path / "demo"
     logs = []
     first = run_demo(ws_path, log=logs.append)
-    assert first.ran == ["scene", "devices", "capture"] and first.up_to_date == []
+    assert first.ran == ["scene", "devices", "capture", "fit"] and first.up_to_date == []
     out = first.outputs
     assert set(out) == {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
-                        "take.mcap", "capture.json",
+                        "take.mcap", "capture.json", "sync.npz", "sync.json", "fuse.json", "bodies.npz", "shapes.json",
+                        "frames.npz", "report.html", "report.png",
+                        *(f"{a}.{k}.npz" for a in ("sim-a", "sim-b") for k in ("skeleton", "trackers")),
                         *(f"meshes/{a}_{t}.ply" for a in ("sim-a", "sim-b") for t in ("first", "contact"))}  # fmt: skip
     scene = Scene.load(out["scene.npz"])
     seq = InteractionSequence.load(out["sequence.npz"])
@@ -61,11 +63,21 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     assert frames == devices["samples"]["suit/0"], "every suit frame sent was recorded"
     assert sum(n for t, n in cap["per_topic"].items() if t.endswith("TrackerSample")) == sum(
         v for k, v in devices["samples"].items() if k.startswith("vive/"))  # fmt: skip
+    # sync -> fuse -> fit: both bodies fitted to the recorded take, close to the ground truth,
+    # the collision term removing most of the penetration the skeleton pass leaves
+    fitted = InteractionSequence.load(out["bodies.npz"])
+    sync = json.loads(out["sync.json"].read_text())
+    assert abs(sync["clocks"]["source:trackers"]["offset_s"] - 0.25) < 0.005
+    err = np.mean([np.linalg.norm(f.joints() - g.joints()[: f.num_frames], axis=-1).mean() for f, g in zip(fitted.actors, seq.actors)])
+    assert err < 0.03, f"mean joint error {err * 1000:.1f} mm"
+    assert "<svg" in out["report.html"].read_text()
     with Workspace.open(ws_path) as ws:
+        fit_row = ws.stage_record("fit", DEMO_TAKE)
+        assert fit_row["status"] == "done"
         for stage in ("scene", "devices", "capture"):
             assert ws.stage_record(stage, DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
         assert [a.shape_source for a in ws.actors()] == ["stature", "stature"]
     mtimes = {p: p.stat().st_mtime_ns for p in out.values()}
     second = run_demo(ws_path, log=logs.append)
-    assert second.ran == [] and second.up_to_date == ["scene", "devices", "capture"]
+    assert second.ran == [] and second.up_to_date == ["scene", "devices", "capture", "fit"]
     assert {p: p.stat().st_mtime_ns for p in second.outputs.values()} == mtimes  # nothing rewritten

@@ -9,7 +9,7 @@ Artifacts (under ``WS/artifacts/TAKE/_take/<stage>/``):
   uncertainties);
 * ``fuse``: ``<actor>.skeleton.npz`` (:class:`~dualhuman_builder.tracks.SkeletonTrack`, tracker
   world) and ``fuse.json`` (per tracker: valid, rejected and bridged frames);
-* ``fit``: ``sequence.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence` of the two
+* ``fit``: ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence` of the two
   fitted bodies), ``shapes.json`` (each actor's calibrated phenotype and segment-length residuals),
   ``frames.npz`` (per-frame residuals and penetration), ``report.html`` and ``report.png``.
 """
@@ -61,6 +61,7 @@ def _read(ws, take):
 
 
 def run_fuse(ws, take: str, force: bool = False, log: Callable = print, **sync_kw):
+    """Fuse each actor of ``take`` (runs sync first when needed; ``sync_kw`` go to :func:`run_sync`)."""
     from dualhuman_builder.fit.fuse import fuse_actor
     from dualhuman_builder.sync.timeline import SyncResult
 
@@ -123,7 +124,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         log("shapes: " + ", ".join(f"{k} {v.stature_m:.3f} m (segment lengths within {v.rms_mm:.1f} mm RMS)" for k, v in shapes.items()))
         res = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), sync.fps, config, log)
         seq = res.sequence
-        seq.save(out.path("sequence.npz"))
+        seq.save(out.path("bodies.npz"))
         out.path("shapes.json").write_text(json.dumps({k: v.as_dict() for k, v in shapes.items()}, indent=2))
         np.savez(out.path("frames.npz"), valid=res.valid, **{k.replace("/", "|"): v for k, v in res.frames.items()})
         without = [f.skeleton.actor for f in fused if not f.fused_with_trackers]

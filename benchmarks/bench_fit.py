@@ -1,0 +1,94 @@
+"""Fit speed: frame pairs per second, against anny's raw forward+backward at the same batch size,
+and peak memory as the take grows.
+
+    .venv/bin/python benchmarks/bench_fit.py                      # 1-minute take, CPU
+    .venv/bin/python benchmarks/bench_fit.py --minutes 10         # peak memory stays bounded?
+    .venv/bin/python benchmarks/bench_fit.py --device cuda        # on a GPU
+
+Inputs are the ground-truth segments of a generated hug (the scene type with the most contact),
+looped to the requested length, with six trackers per actor at their segment origins: the fitter
+does the same work as on a recorded take (sync and fuse excluded; they run at >100x real time).
+Prints: fit frame pairs/s with and without the collision term (median of --runs), anny
+forward+backward bodies/s at batch 2 x window, the ratio, and the process's peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def inputs(model, minutes: float, fps: float):
+    from dualhuman_builder.body.mapping import MVN_SEGMENTS
+    from dualhuman_builder.fit.fitter import ActorInput
+    from dualhuman_builder.sim.groundtruth import segment_kinematics
+    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+
+    sc = make_scene(SceneParams(type="hug", seed=0, fps=fps), model=model)
+    T = int(minutes * 60 * fps)
+    out = []
+    tracked = [MVN_SEGMENTS.index(s) for s in ("Pelvis", "Head", "LeftHand", "RightHand", "LeftFoot", "RightFoot")]
+    for track in sc.sequence.actors:
+        sk = segment_kinematics(track)
+        n = sk.num_frames
+        idx = np.concatenate([np.arange(n), np.arange(n)[::-1]])  # ping-pong keeps the motion continuous
+        idx = np.resize(idx, T)
+        pos = np.asarray(sk.positions)[idx]
+        out.append(ActorInput(track.actor, {k: float(v) for k, v in zip(model.shape_names, track.shape)},
+                              np.asarray(sk.orientations)[idx], pos[:, 0], np.ones(T, bool), pos[:, tracked],
+                              np.ones((T, 6), bool), np.array(tracked), np.zeros((6, 3)),
+                              pos[:, [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]))  # fmt: skip
+    return out
+
+
+def anny_rate(model, batch: int, runs: int) -> float:
+    pose = torch.zeros(batch, model.num_bones, 3, requires_grad=True)
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        model.forward(pose, None, torch.zeros(batch, 3)).vertices.sum().backward()
+        times.append(time.perf_counter() - t)
+    return batch / statistics.median(times)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--minutes", type=float, default=1.0)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+    from dualhuman_builder.body.model import get_body_model
+    from dualhuman_builder.fit.fitter import FitConfig, fit_actors
+
+    model = get_body_model(args.device)
+    inp = inputs(get_body_model(), args.minutes, args.fps)
+    T = len(inp[0].seg_rot)
+    print(f"take: {args.minutes:g} min at {args.fps:g} fps = {T} frame pairs; device {args.device}; torch threads {torch.get_num_threads()}")
+    medians = {}
+    for collision in (False, True):
+        rates = []
+        for _ in range(args.runs):
+            res = fit_actors(model, inp, args.fps, FitConfig(collision=collision, device=args.device))
+            rates.append(res.summary["frame_pairs_per_s"])
+        medians[collision] = statistics.median(rates)
+        extra = f", frames in collision {res.summary['collision_frames']}" if collision else ""
+        print(f"fit {'with' if collision else 'without'} collision term: {statistics.median(rates):.1f} frame pairs/s (median of {args.runs}{extra})")
+    cfg = FitConfig()
+    rate = anny_rate(model, 2 * cfg.window, args.runs + 2)
+    print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
+    print(f"ratio fit / anny raw: {medians[False] / (rate / 2):.3f} without collision term, {medians[True] / (rate / 2):.3f} with")
+    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
