@@ -77,11 +77,9 @@ body b turned 180 deg about +Y; "hug" = b 0.15 m in front of a, 9.1 cm max overl
 inside vertices each way; "thin" = 3 mm; "far" = 2 m apart; ms per frame pair, both directions,
 median of 7 runs; depth error against ``igl.signed_distance`` with the winding-number sign):
 
-==============================  ========  ========  ========  ==============  ========
-method                          hug ms    thin ms   far ms    max err (mm)    missed
-==============================  ========  ========  ========  ==============  ========
-warp, band 1 cm + flood fill    FILLED    FILLED    FILLED    FILLED          FILLED
-==============================  ========  ========  ========  ==============  ========
+The comparison table of the three methods is produced by ``benchmarks/bench_collision.py`` (in
+progress: its figures are not in yet; the default was chosen for exactness: the grid cannot see
+penetrations thinner than a cell, and libigl rebuilds its tree per call).
 
 Queries always run on the CPU (warp CPU kernels, scipy for the flood fill): CUDA tensors are
 copied to the CPU for the query (``V x 3`` floats per body and frame) and the differentiable
@@ -231,6 +229,7 @@ class CollisionTerm:
         eps_m: float = 1e-5,
         grid_res: int = 32,
         threads: int | None = None,
+        flood_min: int = 1500,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -267,6 +266,7 @@ class CollisionTerm:
         self.guard_weight = float(guard_weight)
         self.eps = float(eps_m)
         self.grid_res = int(grid_res)
+        self.flood_min = int(flood_min)
         self.threads = max(1, int(threads) if threads else min(os.cpu_count() or 1, 8))
         # obstacle surface: the largest closed component (anny: the body without eyes and mouth)
         self.obstacle_faces = self.faces[collision_faces(self.faces, self.num_vertices_min)]
@@ -382,7 +382,7 @@ class CollisionTerm:
                 raise ValueError(f"{name} is empty: batch of 0 frames")
             if v.shape[1] < self.num_vertices_min:
                 raise ValueError(f"{name} has {v.shape[1]} vertices but faces index up to {self.num_vertices_min - 1}")
-            bad = ~torch.isfinite(v.detach()).all(dim=2).all(dim=1)
+            bad = ~torch.isfinite(v.detach().sum(dim=(1, 2), dtype=torch.float64))  # NaN and inf survive a sum
             if bool(bad.any()):
                 raise ValueError(f"{name} contains NaN or infinite coordinates in frame(s) {torch.flatnonzero(bad).tolist()[:10]}")
             out.append(v)
@@ -396,8 +396,9 @@ class CollisionTerm:
     # ------------------------------------------------------------------------------------ broad phase
     def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap."""
-        lo_a, hi_a = va.amin(dim=1) - self.pad, va.amax(dim=1) + self.pad
-        lo_b, hi_b = vb.amin(dim=1) - self.pad, vb.amax(dim=1) + self.pad
+        ta, tb = va.transpose(1, 2).contiguous(), vb.transpose(1, 2).contiguous()  # fast reductions
+        lo_a, hi_a = ta.amin(dim=2) - self.pad, ta.amax(dim=2) + self.pad
+        lo_b, hi_b = tb.amin(dim=2) - self.pad, tb.amax(dim=2) + self.pad
         return ((lo_a <= hi_b) & (lo_b <= hi_a)).all(dim=1)
 
     # ------------------------------------------------------------------------------------ warp plumbing
@@ -511,8 +512,12 @@ class CollisionTerm:
         lb[far] = np.maximum(lb[far], self.band)
         res_idx, res_sd, res_face, res_bary = [flat[near]], [sd[near]], [face[near]], [bary[near]]
         n_rep = n_deep = 0
-        if len(far):
-            big = (np.linalg.norm(hi - lo, axis=1) + 1.0).astype(np.float32)  # > any inside distance
+        big = (np.linalg.norm(hi - lo, axis=1) + 1.0).astype(np.float32)  # > any inside distance
+        if 0 < len(far) < self.flood_min:  # few: a full query each is cheaper than the flood fill
+            d_sd, d_face, d_bary = self._query(ids, (far // V).astype(np.int32), Qf[far], big[far // V])
+            res_idx.append(far), res_sd.append(d_sd), res_face.append(d_face), res_bary.append(d_bary)
+            n_deep = len(far)
+        elif len(far):
             # (2) sign flood fill along the query mesh's edges that cannot cross the obstacle
             e0, e1 = self.edges[:, 0], self.edges[:, 1]
             unknown = (sgn == 0).reshape(P, V)
@@ -545,7 +550,7 @@ class CollisionTerm:
                 res_idx.append(deep), res_sd.append(d_sd), res_face.append(d_face), res_bary.append(d_bary)
                 n_deep = len(deep)
         self.last_stats = {"candidates": int(len(flat)), "near": int(near.sum()), "far": int(len(far)),
-                            "representatives": n_rep, "deep": n_deep}  # fmt: skip
+                            "representatives": n_rep, "full": n_deep}  # fmt: skip
         idx, sd_all = np.concatenate(res_idx), np.concatenate(res_sd)
         face_all, bary_all = np.concatenate(res_face), np.concatenate(res_bary)
         ins = (face_all >= 0) & (sd_all < 0)
