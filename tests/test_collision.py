@@ -1,0 +1,246 @@
+"""CollisionTerm on real anny bodies: broad phase, exact depths against libigl, gradients that
+separate both bodies, the Jiang pitfalls (same spot, thin penetrations), batching, bad input.
+
+Scenes: body a in anny's rest A-pose with its pelvis at (0, 0.95, 0) facing +Z; body b the same
+body turned 180 deg about +Y, shifted along Z (front to front: "hug", feet interleaved, ~9 cm
+deep; back to back: shallow contacts) or 2 m along X ("far").
+"""
+
+from __future__ import annotations
+
+import math
+
+import igl
+import numpy as np
+import pytest
+import torch
+
+from dualhuman_builder.body.topology import collision_faces
+from dualhuman_builder.fit.collision import CollisionTerm
+
+HUG_DZ = 0.15  # b in front of a, front to front
+BACK_DZ = -0.17  # b behind a, back to back: ~3 cm overlap (buttocks, heels, shoulder blades)
+
+
+@pytest.fixture(scope="module")
+def bodies(body_model):
+    pose = torch.zeros(2, body_model.num_bones, 3)
+    pose[1, 0, 1] = math.pi
+    with torch.no_grad():
+        v = body_model.forward(pose, None, torch.tensor([[0.0, 0.95, 0.0], [0.0, 0.95, 0.0]])).vertices
+    faces = body_model.faces.cpu().numpy()
+    fs = faces[collision_faces(faces, body_model.num_vertices)]
+    return {"a": v[:1].clone(), "b": v[1:].clone(), "faces": faces, "fs": fs}
+
+
+@pytest.fixture(scope="module")
+def ct(bodies):
+    return CollisionTerm(bodies["faces"])
+
+
+def place(bodies, dx=0.0, dz=0.0):
+    return bodies["a"], bodies["b"] + torch.tensor([float(dx), 0.0, float(dz)])
+
+
+def reference(a, b, fs):
+    """Independent depths on the body surface: igl.signed_distance with the winding-number sign."""
+    A, B = a[0].double().numpy(), b[0].double().numpy()
+    surf = np.zeros(len(A), bool)
+    surf[np.unique(fs)] = True
+    wn = igl.SIGNED_DISTANCE_TYPE_WINDING_NUMBER
+    da = np.maximum(-igl.signed_distance(A, B, fs, wn)[0], 0.0) * surf
+    db = np.maximum(-igl.signed_distance(B, A, fs, wn)[0], 0.0) * surf
+    return da, db
+
+
+def test_far_apart_costs_nothing(ct, bodies):
+    a, b = place(bodies, dx=2.0)
+    va, vb = a.clone().requires_grad_(True), b.clone().requires_grad_(True)
+    r = ct(va, vb)
+    assert r.loss.shape == (1,) and r.loss.item() == 0.0
+    assert not bool(r.active[0]) and r.penetrating.item() == 0 and r.max_depth_m.item() == 0.0
+    assert ct.last_stats == {}  # no query at all
+    r.loss.sum().backward()
+    assert torch.count_nonzero(va.grad) == 0 and torch.count_nonzero(vb.grad) == 0
+    p = ct.penetration(a, b)
+    assert p["max_depth_m"].tolist() == [0.0] and p["share"].tolist() == [0.0]
+    assert not p["depth_a"].any() and not p["depth_b"].any()
+
+
+def test_known_overlap_matches_igl(ct, bodies):
+    a, b = place(bodies, dz=HUG_DZ)
+    da, db = reference(a, b, bodies["fs"])
+    p = ct.penetration(a, b)
+    V = a.shape[1]
+    assert p["depth_a"].shape == (1, V) and p["depth_b"].shape == (1, V)
+    ref_max = max(da.max(), db.max())
+    assert 0.05 < ref_max < 0.15
+    assert abs(p["max_depth_m"][0] - ref_max) < 5e-4
+    assert np.abs(p["depth_a"][0] - da).max() < 5e-4 and np.abs(p["depth_b"][0] - db).max() < 5e-4
+    missed = np.sum((da > 1e-4) & (p["depth_a"][0] == 0)) + np.sum((db > 1e-4) & (p["depth_b"][0] == 0))
+    assert missed == 0
+    n_ref = int(np.sum(da > ct.eps) + np.sum(db > ct.eps))
+    assert p["penetrating"][0] == n_ref and p["share"][0] == pytest.approx(n_ref / (2 * V)) and p["share"][0] > 0.1
+    r = ct(a, b)  # the loss path reports the same diagnostics
+    assert bool(r.active[0]) and r.loss.item() > 0
+    assert r.max_depth_m.item() == pytest.approx(p["max_depth_m"][0], abs=1e-6)
+    assert r.penetrating.item() == p["penetrating"][0]
+    # only vertices inside the other body's grown box were queried
+    surf = np.zeros(V, bool)
+    surf[np.unique(bodies["fs"])] = True
+    A, B = a[0].numpy(), b[0].numpy()
+    inbox = 0
+    for q, o in ((B, A), (A, B)):
+        lo, hi = o[surf].min(0) - ct.pad, o[surf].max(0) + ct.pad
+        inbox += int(np.sum(np.all((q >= lo) & (q <= hi), axis=1) & surf))
+    assert ct.last_stats["candidates"] == inbox < 2 * surf.sum()
+
+
+def test_igl_and_winding_sign_agree_with_default(bodies):
+    a, b = place(bodies, dz=HUG_DZ)
+    pw = CollisionTerm(bodies["faces"]).penetration(a, b)
+    for other in (CollisionTerm(bodies["faces"], method="igl"), CollisionTerm(bodies["faces"], sign="winding")):
+        po = other.penetration(a, b)
+        assert np.abs(pw["depth_a"] - po["depth_a"]).max() < 1e-5
+        assert np.abs(pw["depth_b"] - po["depth_b"]).max() < 1e-5
+
+
+def test_descent_on_translations_separates_both(ct, bodies):
+    a, b = place(bodies, dz=BACK_DZ)
+    assert ct.penetration(a, b)["max_depth_m"][0] > 0.02
+    ta = torch.zeros(1, 3, requires_grad=True)
+    tb = torch.zeros(1, 3, requires_grad=True)
+    opt = torch.optim.Adam([ta, tb], lr=0.002)
+    losses = []
+    for _ in range(40):
+        opt.zero_grad()
+        r = ct(a + ta[:, None], b + tb[:, None])
+        losses.append(r.loss.item())
+        if r.max_depth_m.item() < 1e-3:
+            break
+        r.loss.sum().backward()
+        opt.step()
+    final = ct.penetration(a + ta.detach()[:, None], b + tb.detach()[:, None])
+    assert final["max_depth_m"][0] < 1e-3
+    assert losses[-1] < 0.01 * losses[0]
+    # both bodies moved, apart along Z (b is behind a)
+    assert ta[0, 2].item() > 0.003 and tb[0, 2].item() < -0.003
+
+
+def test_gradient_matches_finite_differences(bodies):
+    ct64 = CollisionTerm(bodies["faces"])
+    a, b = place(bodies, dz=BACK_DZ)
+    a, b = a.double(), b.double()
+    ta = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    tb = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    r = ct64(a + ta[:, None], b + tb[:, None])
+    r.loss.sum().backward()
+    g = tb.grad[0].numpy()
+    assert np.allclose(ta.grad[0].numpy(), -g, atol=1e-9)  # equal and opposite: both pushed apart
+    assert g[2] > 0  # descent moves b further behind a
+    # h: large enough to drown the float32 closest-point noise (~1e-10 in the loss), small enough
+    # that the few vertices entering or leaving contact add nothing measurable
+    h = 2e-4
+    for axis in (0, 1, 2):
+        e = torch.zeros(1, 1, 3, dtype=torch.float64)
+        e[..., axis] = h
+        fd = (ct64(a, b + e).loss.item() - ct64(a, b - e).loss.item()) / (2 * h)
+        assert fd == pytest.approx(g[axis], rel=1e-2, abs=1e-3 * abs(g[2]))
+
+
+def test_identical_position_is_pushed_apart(ct, bodies):
+    a = bodies["a"]
+    ta = torch.zeros(1, 3, requires_grad=True)
+    tb = torch.zeros(1, 3, requires_grad=True)
+    r = ct(a + ta[:, None], a + tb[:, None])
+    # coincident surfaces: no vertex is inside the other, so the depths alone give nothing
+    assert r.penetrating.item() == 0 and r.max_depth_m.item() == 0.0
+    bare = CollisionTerm(bodies["faces"], guard_weight=0.0)(a + ta[:, None], a + tb[:, None]).loss
+    assert bare.item() < 1e-6  # Jiang's pitfall without the guard
+    assert r.loss.item() == pytest.approx(1.0)  # the guard, at full weight
+    r.loss.sum().backward()
+    assert ta.grad.norm() > 1.0 and torch.allclose(ta.grad, -tb.grad)
+    step = 0.01
+    with torch.no_grad():
+        ta2, tb2 = ta - step * ta.grad, tb - step * tb.grad
+    assert (tb2 - ta2).norm().item() > 0.1  # one step separates them
+    assert ct(a + ta2[:, None], a + tb2[:, None]).loss.item() < r.loss.item()
+
+
+def test_thin_penetration_is_seen(ct, bodies):
+    # back to back, shifted until the deepest point is ~3 mm inside (depth moves ~1:1 with the shift)
+    dz = BACK_DZ
+    for _ in range(2):
+        da, db = reference(*place(bodies, dz=dz), bodies["fs"])
+        dz -= float(max(da.max(), db.max())) - 0.003
+    a, b = place(bodies, dz=dz)
+    da, db = reference(a, b, bodies["fs"])
+    ref = max(da.max(), db.max())
+    assert 0.002 < ref < 0.004
+    p = ct.penetration(a, b)
+    assert abs(p["max_depth_m"][0] - ref) < 5e-4 and p["penetrating"][0] > 0
+    # Jiang's 32^3 grid has cells of several centimetres: it cannot measure this
+    pg = CollisionTerm(bodies["faces"], method="grid").penetration(a, b)
+    err = max(np.abs(pg["depth_a"][0] - da).max(), np.abs(pg["depth_b"][0] - db).max())
+    assert err > 5e-4
+
+
+def test_batch_equals_frames_one_by_one(ct, bodies):
+    a = bodies["a"]
+    bs = [place(bodies, dz=HUG_DZ)[1], place(bodies, dx=2.0)[1], place(bodies, dz=BACK_DZ)[1], a]
+    A = torch.cat([a] * 4).requires_grad_(True)
+    B = torch.cat(bs).requires_grad_(True)
+    r = ct(A, B)
+    assert r.loss.shape == (4,) and r.active.tolist() == [True, False, True, True]
+    r.loss.sum().backward()
+    for i in range(4):
+        va = a.clone().requires_grad_(True)
+        vb = bs[i].clone().requires_grad_(True)
+        s = ct(va, vb)
+        assert s.loss.item() == pytest.approx(r.loss[i].item(), rel=1e-5, abs=1e-9)
+        assert s.penetrating.item() == r.penetrating[i].item()
+        assert s.max_depth_m.item() == pytest.approx(r.max_depth_m[i].item(), abs=1e-7)
+        s.loss.sum().backward()
+        assert torch.allclose(va.grad, A.grad[i : i + 1], atol=1e-7)
+        assert torch.allclose(vb.grad, B.grad[i : i + 1], atol=1e-7)
+    assert r.loss[1].item() == 0.0
+
+
+def test_rho_keeps_pushing_deep_vertices(bodies):
+    d = torch.tensor([0.001, 0.05], requires_grad=True)
+    for name in ("pseudo_huber", "squared", "geman_mcclure"):
+        d.grad = None
+        CollisionTerm(bodies["faces"], rho=name).rho(d).sum().backward()
+        slope_deep = d.grad[1].item()
+        if name == "geman_mcclure":
+            assert slope_deep < 2.0  # saturated: 2 s^2 / d^3 ~ 1.6 per metre, vs 65 at its peak
+        else:
+            assert slope_deep >= 0.98 / 0.01  # pseudo-Huber ~1/s, squared 2 d / s^2
+
+
+def test_bad_input(ct, bodies):
+    a = bodies["a"]
+    with pytest.raises(ValueError, match="same shape"):
+        ct(a, torch.cat([a, a]))
+    with pytest.raises(ValueError, match=r"\(B, V, 3\)"):
+        ct(a[..., :2], a[..., :2])
+    bad = a.clone()
+    bad[0, 10, 1] = float("nan")
+    with pytest.raises(ValueError, match="verts_b contains NaN"):
+        ct(a, bad)
+    with pytest.raises(ValueError, match="verts_a contains NaN"):
+        ct.penetration(bad, a)
+    with pytest.raises(ValueError, match="empty"):
+        ct(a[:0], a[:0])
+    with pytest.raises(ValueError, match="faces index up to"):
+        ct(a[:, :100], a[:, :100])
+    with pytest.raises(ValueError, match="torch tensor"):
+        ct(a.numpy(), a.numpy())
+    with pytest.raises(ValueError, match="method must be one of"):
+        CollisionTerm(bodies["faces"], method="bvh")
+    with pytest.raises(ValueError, match="not closed"):
+        CollisionTerm(bodies["faces"][:-1])
+    with pytest.raises(ValueError, match=r"faces must have shape \(F, 3\)"):
+        CollisionTerm(np.zeros((0, 3), int))
+    with pytest.raises(ValueError, match="band_m must be a positive"):
+        CollisionTerm(bodies["faces"], band_m=0.0)
