@@ -65,7 +65,7 @@ def test_bad_input_gets_clear_errors(model):
 def recorded(tmp_path_factory, model):
     from dualhuman_builder.fit.evaluate import record_simulated_take
 
-    return record_simulated_take("handshake", 1, tmp_path_factory.mktemp("take"), fps=15.0, speed=4.0, model=model)
+    return record_simulated_take("handshake", 1, tmp_path_factory.mktemp("take"), fps=15.0, speed=1.0, model=model)
 
 
 def test_full_path_on_a_simulated_take(recorded, model):

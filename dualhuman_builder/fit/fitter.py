@@ -26,13 +26,13 @@ and only those frames get the collision pass. Frames far apart pay nothing.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 import roma
 import torch
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
 from dualhuman_builder.errors import DualhumanError
@@ -106,19 +106,15 @@ def _fill(rot: np.ndarray, valid: np.ndarray) -> np.ndarray:
     out = rot.copy()
     for s in range(rot.shape[1]):
         r = Rotation.from_quat(rot[good, s])
-        from scipy.spatial.transform import Slerp
-
         tt = np.clip(t, good[0], good[-1])
         out[:, s] = Slerp(good, r)(tt).as_quat() if len(good) > 1 else np.repeat(rot[good, s], len(t), 0)
     return out
 
 
 def _interp_rows(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    t = np.arange(len(x))
-    good = np.flatnonzero(valid & np.isfinite(x).all(-1))
-    if len(good) == 0:
-        return np.zeros_like(x)
-    return np.stack([np.interp(t, good, x[good, i]) for i in range(x.shape[-1])], -1)
+    from dualhuman_builder.fit.fuse import bridge_rows
+
+    return bridge_rows(np.nan_to_num(x), valid & np.isfinite(x).all(-1))
 
 
 def stance_mask(ankles: np.ndarray, fps: float, sole_offset: np.ndarray, cfg: FitConfig) -> np.ndarray:
@@ -290,10 +286,9 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     return e
 
                 copt.step(cclosure)
-        for k in range(len(acts)):
-            keep = slice(s0 if wi == 0 else s0 + 0, s1)
-            deltas[k][keep] = params[2 * k].detach()[keep.start - s0 :]
-            dtransl[k][keep] = params[2 * k + 1].detach()[keep.start - s0 :]
+        for k in range(len(acts)):  # overlapping frames take the later window's answer
+            deltas[k][sl] = params[2 * k].detach()
+            dtransl[k][sl] = params[2 * k + 1].detach()
         say(f"window {wi + 1}/{len(starts)}: frames {s0}-{s1 - 1}")
     seconds = time.perf_counter() - t_start
 
@@ -301,7 +296,6 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     tracks, frames = [], {}
     pen_after = np.zeros(T)
     share_after = np.zeros(T)
-    verts_all = []
     for k, a in enumerate(acts):
         with torch.no_grad():
             rot = roma.rotvec_to_rotmat(deltas[k]) @ a.target
@@ -330,7 +324,6 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             share_after[sl] = pen["share"]
         frames["penetration depth (mm)/without collision term"] = pen_before * 1000
         frames["penetration depth (mm)/with collision term"] = pen_after * 1000
-        del verts_all
     valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in acts])
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
@@ -360,4 +353,4 @@ def inputs_from_fused(fused: list, shapes: dict[str, dict]) -> list[ActorInput]:
     return out
 
 
-__all__ = ["FitConfig", "FitError", "FitResult", "ActorInput", "fit_actors", "inputs_from_fused", "replace"]
+__all__ = ["FitConfig", "FitError", "FitResult", "ActorInput", "fit_actors", "inputs_from_fused"]

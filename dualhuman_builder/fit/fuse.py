@@ -50,7 +50,7 @@ class FusedActor:
     stats: dict
 
 
-def _bridge(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def bridge_rows(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Fill invalid rows of ``values (T, 3)`` by linear interpolation between valid ones (held at
     the ends); all-invalid gives zeros."""
     if not valid.any():
@@ -97,7 +97,7 @@ def fuse_actor(streams, times_s: np.ndarray, fps: float) -> FusedActor:
         jump = ~(np.linalg.norm(np.nan_to_num(delta, nan=1e9), axis=1) < JUMP_M)
         rejected = trk_valid[:, k] & jump
         trk_valid[:, k] &= ~jump
-        corr = _bridge(np.nan_to_num(delta), trk_valid[:, k])
+        corr = bridge_rows(np.nan_to_num(delta), trk_valid[:, k])
         # the correction moves the segment and everything below it in the chain would need FK; the
         # fused skeleton moves only the tracked segment's origin (the fitter solves the chain)
         p_fused[:, s] += corr
