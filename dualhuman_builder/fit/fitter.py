@@ -51,6 +51,10 @@ class FitConfig:
     iterations: int = 30
     collision: bool = True
     collision_iterations: int = 12
+    #: while a window still has a frame deeper than ``collision_tolerance_m`` after a collision pass, it
+    #: gets another with the weight x4, up to this many passes in all
+    collision_rounds: int = 3
+    collision_tolerance_m: float = 0.002
     sigma_orientation_deg: float = 2.0
     sigma_tracker_m: float = 0.004
     #: joint acceleration, m/s^2 (scaled to a per-frame second difference by fps)
@@ -267,12 +271,14 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             pen_before[sl] = pen["max_depth_m"]
             pen_share_before[sl] = pen["share"]
             hit = np.flatnonzero(pen["max_depth_m"] > 0)
-            if len(hit):
-                collided_frames += len(hit)
+            collided_frames += len(hit)
+            weight = cfg.collision_weight
+
+            for _round in range(max(int(cfg.collision_rounds), 1) if len(hit) else 0):
                 hit_t = torch.as_tensor(hit, device=dev)
                 copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
 
-                def cclosure():
+                def cclosure(hit_t=hit_t, weight=weight, copt=copt):
                     copt.zero_grad()
                     e, _ = skeleton_energy()
                     vs = []
@@ -281,11 +287,22 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                         rot = roma.rotvec_to_rotmat(d) @ a.target[sl][hit_t]
                         vs.append(a.rig.pose(rot, a.transl0[sl][hit_t] + tr, True).vertices)
                     c = collide(vs[0], vs[1]).loss.sum()
-                    e = e + cfg.collision_weight * c
+                    e = e + weight * c
                     e.backward()
                     return e
 
                 copt.step(cclosure)
+                # how deep one pass leaves a frame depends on where it started, so frames still deeper than
+                # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
+                # the term: released, it would spring back (the other terms still pull it in) while its
+                # neighbours are refitted. Frames pushed into contact by their neighbours join.
+                with torch.no_grad():
+                    vs = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                    left = collide.penetration(vs[0], vs[1])["max_depth_m"]
+                if left.max() <= cfg.collision_tolerance_m:
+                    break
+                hit = np.union1d(hit, np.flatnonzero(left > 0))
+                weight *= 4.0
         for k in range(len(acts)):  # overlapping frames take the later window's answer
             deltas[k][sl] = params[2 * k].detach()
             dtransl[k][sl] = params[2 * k + 1].detach()
