@@ -1,7 +1,24 @@
 """Contacts stage: per-vertex contact labels between the two fitted meshes with libigl.
 
-Signed distances of each body's vertices to the other's mesh (``igl.signed_distance`` with a
-distance band), per-vertex labels, per-frame flags and region-level events over the regions of
-``rigs/anny_regions.toml``. The mesh is watertight (see :mod:`dualhuman_builder.body.topology`),
-so pseudonormal signs are exact on the body component. Arrives with the contacts issue.
+Signed distances (metres, negative inside, world frame) of each body's vertices to the other's
+closed mesh (``igl.signed_distance``, pseudonormal sign, within a band), per-vertex labels
+(distance below a threshold, penetration included), per-frame flags and region-level contact
+events over the regions of ``rigs/anny_regions.toml``:
+
+* :func:`compute_contacts` — an :class:`~dualhuman_builder.tracks.InteractionSequence` to a
+  :class:`ContactResult`; :func:`contacts_from_vertices` for raw ``(T, V, 3)`` vertex arrays;
+  :func:`contact_frame` for one frame in float64;
+* :func:`contacts_for_scene` — the same on a ground-truth scene, with F1 against its contacts;
+* :func:`~dualhuman_builder.contacts.stage.run_contacts` — the workspace stage.
+
+:mod:`.distance` is the warp-based signed distance the scene generator uses for its ground truth.
 """
+
+from dualhuman_builder.contacts.compute import (DEFAULT_BAND_M, DEFAULT_MERGE_GAP, DEFAULT_THRESHOLD_M, ContactResult,
+                                                ContactTopology, compute_contacts, contact_frame, contacts_for_scene,
+                                                contacts_from_vertices, default_topology)  # fmt: skip
+from dualhuman_builder.contacts.stage import run_contacts
+
+__all__ = ["DEFAULT_BAND_M", "DEFAULT_MERGE_GAP", "DEFAULT_THRESHOLD_M", "ContactResult", "ContactTopology",
+           "compute_contacts", "contact_frame", "contacts_for_scene", "contacts_from_vertices", "default_topology",
+           "run_contacts"]  # fmt: skip

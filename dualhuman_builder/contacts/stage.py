@@ -1,0 +1,75 @@
+"""The ``contacts`` workspace stage of a take (idempotent, crash-safe: see
+:mod:`dualhuman_builder.workspace.stages`).
+
+Reads the fit stage's ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence`) and
+writes, under ``WS/artifacts/TAKE/_take/contacts/``:
+
+* ``contacts.npz``: the :class:`~dualhuman_builder.contacts.compute.ContactResult` (labels
+  bit-packed, float16 distances, per-frame flags, events and stats);
+* ``contacts.json``: region-level events, per-actor contact-vertex counts per frame, stats.
+
+It never runs the fit itself: a take without a complete fit is an error saying which command to
+run. The parameters hash covers ``threshold_m``, ``band_m``, ``merge_gap`` and the fit's
+artifacts, so a new fit makes the contacts stale.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Callable
+
+from dualhuman_builder.contacts.compute import DEFAULT_BAND_M, DEFAULT_MERGE_GAP, DEFAULT_THRESHOLD_M, check_params
+from dualhuman_builder.errors import WorkspaceError
+
+STAGE_VERSION = "1"
+
+
+def _fitted_bodies(ws, take: str):
+    rec = ws.stage_record("fit", take)
+    fix = f"dualhuman fit {ws.root} --take {take}"
+    if rec is None or rec["status"] != "done":
+        state = "has not run" if rec is None else f"is {rec['status']}"
+        raise WorkspaceError(f"take {take!r} has no fitted bodies: its fit stage {state}", path=ws.root, fix=fix)
+    arts = ws.artifacts("fit", take)
+    if "bodies.npz" not in arts:
+        raise WorkspaceError(f"the fit stage of take {take!r} wrote no bodies.npz", path=ws.root, fix=fix + " --force")
+    return arts["bodies.npz"]
+
+
+def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: float = DEFAULT_BAND_M,
+                 force: bool = False, log: Callable[[str], None] = print, merge_gap: int = DEFAULT_MERGE_GAP):  # fmt: skip
+    """Contacts between the two fitted bodies of ``take`` (thresholds in metres); returns the
+    :class:`~dualhuman_builder.workspace.stages.StageResult` (``skipped`` when up to date)."""
+    from dualhuman_builder.contacts.compute import compute_contacts
+    from dualhuman_builder.tracks import InteractionSequence
+
+    threshold_m, band_m, merge_gap = check_params(threshold_m, band_m, merge_gap)
+    ws.take(take)  # unknown take: a clear error before anything else
+    bodies = _fitted_bodies(ws, take)
+
+    def compute(out):
+        seq = InteractionSequence.load(bodies)
+        log(f"contacts: {seq.num_frames} frames of {take}, threshold {1000 * threshold_m:g} mm, "
+            f"band {1000 * band_m:g} mm")  # fmt: skip
+        res = compute_contacts(seq, threshold_m, band_m, progress=log, merge_gap=merge_gap)
+        res.save(out.path("contacts.npz"))
+        counts = res.contact_counts()
+        report = {
+            "take": take,
+            "actors": list(res.actors),
+            "events": res.events,
+            "contact_vertices": {a: counts[i].tolist() for i, a in enumerate(res.actors)},
+            "stats": res.stats,
+        }
+        out.path("contacts.json").write_text(json.dumps(report, indent=1))
+        st = res.stats
+        log(f"contacts: {st['contact_frames']}/{st['frames']} frames in contact, {len(res.events)} region events, "
+            f"{st['skipped_far_frames']} frames skipped as far apart, {st['skipped_nan_frames']} with NaN vertices; "
+            f"{st['frame_pairs_per_s']} frame pairs/s")  # fmt: skip
+        return {"frames": st["frames"], "contact_frames": st["contact_frames"], "events": len(res.events),
+                "skipped_far_frames": st["skipped_far_frames"], "skipped_nan_frames": st["skipped_nan_frames"],
+                "frame_pairs_per_s": st["frame_pairs_per_s"]}  # fmt: skip
+
+    params = {"threshold_m": float(threshold_m), "band_m": float(band_m), "merge_gap": int(merge_gap)}
+    return ws.run_stage("contacts", compute, take=take, params=params, depends_on=[("fit", None)],
+                        version=STAGE_VERSION, force=force)  # fmt: skip
