@@ -1,0 +1,71 @@
+"""Gather a workspace's finished takes into an export (``dualhuman export WS OUT``).
+
+One exported sequence per take whose ``fit`` stage is complete: the fitted pair (``bodies.npz``),
+the ``contacts`` stage's labels when that stage is complete, the ``render`` stage's folder when it
+is, the take's sequences' labels and texts, and the take's actors as subjects. Takes without a fit
+are listed as left out (an error with ``strict=True``); what each exported sequence lacks is listed
+by :func:`~dualhuman_builder.export.layout.export_dataset` under ``incomplete``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from dualhuman_builder.errors import WorkspaceError
+
+
+def _done(ws, stage: str, take: str) -> bool:
+    return (ws.stage_record(stage, take) or {}).get("status") == "done"
+
+
+def workspace_items(ws, takes: list[str] | None = None) -> tuple[list, list[str]]:
+    """``(items, left_out)``: an :class:`~dualhuman_builder.export.layout.ExportItem` per take of
+    ``takes`` (default: all) with a complete fit, and the names of those without one."""
+    from dualhuman_builder.contacts.compute import ContactResult
+    from dualhuman_builder.export.layout import ExportItem
+    from dualhuman_builder.tracks import InteractionSequence
+
+    known = ws.takes()
+    names = list(takes) if takes else known
+    unknown = [t for t in names if t not in known]
+    if unknown:
+        raise WorkspaceError(f"no take named {unknown} in this workspace (it has {known})", path=ws.root)
+    items, left_out = [], []
+    for take in names:
+        if not _done(ws, "fit", take):
+            left_out.append(take)
+            continue
+        seq = InteractionSequence.load(ws.artifacts("fit", take)["bodies.npz"])
+        contacts = ContactResult.load(ws.artifacts("contacts", take)["contacts.npz"]) if _done(ws, "contacts", take) else None
+        render_dir = ws.artifact_dir("render", take) if _done(ws, "render", take) else None
+        labels, texts = [], []
+        for s in ws.sequences(take):
+            labels += [x for x in s.labels if x not in labels]
+            texts += [x for x in s.text if x not in texts]
+        info = ws.take(take)
+        subjects = tuple(info.actors) if len(info.actors) == 2 else None
+        items.append(ExportItem(take, seq, subjects=subjects, labels=labels, texts=texts, contacts=contacts,
+                                render_dir=render_dir, meta={"take": take, "rig": info.rig}))  # fmt: skip
+    return items, left_out
+
+
+def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: bool = False, split_ratio: float = 0.75,
+               subject_disjoint: bool = False, seed: int = 0, log: Callable[[str], None] = print) -> dict:  # fmt: skip
+    """Export the workspace's fitted takes to ``out_dir``; returns the manifest (plus
+    ``left_out``: takes without a fit)."""
+    from dualhuman_builder.export.layout import export_dataset
+
+    items, left_out = workspace_items(ws, takes)
+    if left_out:
+        msg = f"takes without a complete fit, left out: {left_out}"
+        if strict:
+            raise WorkspaceError(msg, path=ws.root, fix="run `dualhuman fit WS --take T` for each, or drop --strict")
+        log("WARNING: " + msg)
+    if not items:
+        raise WorkspaceError("no take has a complete fit: nothing to export", path=ws.root,
+                             fix="run `dualhuman fit WS --take T` first")  # fmt: skip
+    manifest = export_dataset(items, out_dir, split_ratio=split_ratio, subject_disjoint=subject_disjoint, seed=seed,
+                              strict=strict, progress=log)  # fmt: skip
+    manifest["left_out"] = left_out
+    return manifest

@@ -1,0 +1,293 @@
+"""PyTorch datasets over an export: windows of both persons' motion features, with text.
+
+:class:`MotionWindows` (map-style) reads a folder export (random access; the motion of a few
+sequences is cached per worker) or a list of WebDataset shards (their features are read into
+memory once). :class:`ShardWindows` (iterable) streams shards for data too large for memory,
+splitting the shards over DataLoader workers.
+
+Windows run over the feature rows (row ``t`` describes frame ``t`` and the step ``t -> t+1``, so a
+sequence of ``T`` frames has ``T - 1`` rows): ``L`` rows starting at ``0, s, 2s, ...`` with stride
+``s = L // 2`` by default (L/2 overlap), as long as a whole window fits; a sequence shorter than
+``L + 1`` frames gives no window (listed in ``.too_short``). The rows are exact slices of the
+stored features (the canonical frame stays the sequence's, not re-canonicalised per window).
+
+An item is ``{"seq_id": str, "start": int (first row = first frame), "a": (L, 269) float32 tensor,
+"b": (L, 269) float32 tensor, "text": str, "mirrored": bool}``; with ``renders=True`` (folder only)
+also ``"rgb": (C, L, H, W, 3) uint8`` for the C rendered views of frames ``start .. start+L-1``
+(zeros where a frame was not rendered) and ``"rendered": (L,) bool``.
+
+Augmentation: with probability ``mirror_p`` an item is mirrored left/right:
+:func:`~dualhuman_builder.export.features.mirror_features` on both persons and
+:func:`~dualhuman_builder.export.features.mirror_text` on the text. The choice of text (one of the
+sequence's texts, uniformly) and the mirroring draw from a generator seeded by
+``(seed, epoch, index)``: deterministic whatever the number of workers; call :meth:`set_epoch` for
+fresh draws each epoch. ``normalize=True`` applies ``(x - mean) / std`` after mirroring, with the
+export's ``stats/`` (or ``stats=(mean, std)``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import random
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, IterableDataset, get_worker_info
+
+from dualhuman_builder.export.features import FEATURE_DIM, mirror_features, mirror_text
+from dualhuman_builder.export.layout import load_motion, read_manifest
+from dualhuman_builder.export.shards import decode_sample, iter_shards
+
+_CACHE_SEQUENCES = 16
+
+
+def window_starts(rows: int, window: int, stride: int) -> np.ndarray:
+    """First rows of the windows of ``window`` rows every ``stride`` rows that fit in ``rows``."""
+    if rows < window:
+        return np.zeros(0, dtype=np.int64)
+    return np.arange(0, rows - window + 1, stride, dtype=np.int64)
+
+
+def _check_args(window, stride, mirror_p) -> tuple[int, int, float]:
+    if not isinstance(window, (int, np.integer)) or window < 1:
+        raise ValueError(f"window must be a positive number of feature rows, got {window!r}")
+    stride = max(int(window) // 2, 1) if stride is None else stride
+    if not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"stride must be a positive number of rows, got {stride!r}")
+    if not (isinstance(mirror_p, (int, float)) and 0.0 <= float(mirror_p) <= 1.0):
+        raise ValueError(f"mirror_p must be a probability in [0, 1], got {mirror_p!r}")
+    return int(window), int(stride), float(mirror_p)
+
+
+def _load_stats(stats, folder: Path | None) -> tuple[np.ndarray, np.ndarray]:
+    if stats is None:
+        if folder is None or not (folder / "stats" / "mean.npy").is_file():
+            raise ValueError("normalize=True needs stats=(mean, std) or a stats/ folder (mean.npy, std.npy) beside the data")
+        stats = (np.load(folder / "stats" / "mean.npy", allow_pickle=False),
+                 np.load(folder / "stats" / "std.npy", allow_pickle=False))  # fmt: skip
+    mean, std = (np.asarray(s, dtype=np.float32) for s in stats)
+    if mean.shape != (FEATURE_DIM,) or std.shape != (FEATURE_DIM,):
+        raise ValueError(f"stats must be two ({FEATURE_DIM},) arrays, got {mean.shape} and {std.shape}")
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise ValueError("stats hold NaN/inf or a non-positive std")
+    return mean, std
+
+
+def _shard_list(source) -> list[Path] | None:
+    if isinstance(source, (list, tuple)):
+        if not source:
+            raise ValueError("an empty list of shards")
+        return [Path(p) for p in source]
+    if Path(source).suffix == ".tar":
+        return [Path(source)]
+    return None
+
+
+class _Augment:
+    """Mirroring, text choice and normalisation shared by both datasets."""
+
+    def __init__(self, mirror_p: float, seed: int, normalize: bool, stats, stats_folder: Path | None):
+        self.mirror_p, self.seed, self.epoch = mirror_p, int(seed), 0
+        self.stats = _load_stats(stats, stats_folder) if normalize else None
+
+    def set_epoch(self, epoch: int) -> None:
+        """Use fresh (but reproducible) augmentation draws for ``epoch``."""
+        self.epoch = int(epoch)
+
+    def make(self, key: int, seq_id: str, start: int, a: np.ndarray, b: np.ndarray, texts: list[str]) -> dict:
+        rng = np.random.default_rng([self.seed, self.epoch, int(key)])
+        text = texts[int(rng.integers(len(texts)))] if texts else ""
+        mirrored = bool(self.mirror_p > 0 and rng.random() < self.mirror_p)
+        if mirrored:
+            a, b, text = mirror_features(a), mirror_features(b), mirror_text(text)
+        if self.stats is not None:
+            mean, std = self.stats
+            a, b = (a - mean) / std, (b - mean) / std
+        return {"seq_id": seq_id, "start": int(start), "a": torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)),
+                "b": torch.from_numpy(np.ascontiguousarray(b, dtype=np.float32)), "text": text, "mirrored": mirrored}  # fmt: skip
+
+
+def _shard_sequences(paths: Iterable[Path]) -> Iterator[tuple[str, np.ndarray, np.ndarray, list[str]]]:
+    for sample in iter_shards(paths):
+        s = decode_sample({k: v for k, v in sample.items() if k in ("__key__", "__url__", "motion.npz", "text.json")})
+        if "motion.npz" not in s:
+            raise ValueError(f"{sample['__url__']}: sample {sample['__key__']!r} has no motion.npz")
+        m = s["motion.npz"]
+        texts = s.get("text.json", {}).get("texts", [])
+        yield sample["__key__"], m["a.features"], m["b.features"], [str(t) for t in texts]
+
+
+class MotionWindows(Dataset):
+    """Windows of ``window`` feature rows of both persons (see the module docstring).
+
+    ``source``: an export folder (with ``manifest.json``), or a shard path / list of shard paths.
+    ``split``: ``train``, ``test`` or ``all`` (folder only; shards hold one split each).
+    ``stride``: rows between windows (default ``window // 2``). ``normalize``/``stats``: feature
+    normalisation (default stats: the export's or the shards' ``stats/``). ``mirror_p``, ``seed``:
+    augmentation. ``renders``: also return the rendered RGB frames (folder only, no mirroring).
+    """
+
+    def __init__(self, source: str | Path | Sequence[str | Path], window: int = 64, stride: int | None = None,
+                 split: str = "train", normalize: bool = False, stats=None, mirror_p: float = 0.0, seed: int = 0,
+                 renders: bool = False):  # fmt: skip
+        self.window, self.stride, mirror_p = _check_args(window, stride, mirror_p)
+        shards = _shard_list(source)
+        self.folder = None if shards is not None else Path(source)
+        if renders and shards is not None:
+            raise ValueError("renders=True needs a folder export; shards carry no images")
+        if renders and mirror_p > 0:
+            raise ValueError("renders=True with mirror_p > 0: mirrored motion would not match the images")
+        self.renders = bool(renders)
+        self._cache: OrderedDict[str, tuple[np.ndarray, np.ndarray, list[str]]] = OrderedDict()
+        self.too_short: list[str] = []
+        index: list[tuple[str, int]] = []
+        if shards is not None:
+            for sid, fa, fb, texts in _shard_sequences(shards):
+                if sid in self._cache:
+                    raise ValueError(f"sequence {sid!r} appears twice in the shards")
+                self._cache[sid] = (fa, fb, texts)
+                self._add(index, sid, len(fa))
+            self._keep_all = True
+            stats_folder = shards[0].parent
+        else:
+            self.manifest = read_manifest(self.folder)
+            seqs = self.manifest["sequences"]
+            if split == "all":
+                ids = sorted(seqs)
+            elif split in self.manifest.get("split", {}).get("files", {}):
+                rel = self.manifest["split"]["files"][split]
+                ids = [s for s in (self.folder / rel).read_text(encoding="utf-8").splitlines() if s.strip()]
+            else:
+                raise ValueError(f"unknown split {split!r}; choose train, test or all")
+            for sid in ids:
+                if sid not in seqs:
+                    raise ValueError(f"split {split!r} names {sid!r}, which the manifest does not list")
+                self._add(index, sid, int(seqs[sid]["frames"]) - 1)
+            self._keep_all = False
+            stats_folder = self.folder
+        self.index = index
+        self.aug = _Augment(mirror_p, seed, normalize, stats, stats_folder)
+
+    def _add(self, index: list, sid: str, rows: int) -> None:
+        starts = window_starts(rows, self.window, self.stride)
+        if len(starts) == 0:
+            self.too_short.append(sid)
+        index.extend((sid, int(s)) for s in starts)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Fresh, reproducible augmentation draws for ``epoch``."""
+        self.aug.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def _sequence(self, sid: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        if sid in self._cache:
+            if not self._keep_all:
+                self._cache.move_to_end(sid)
+            return self._cache[sid]
+        base = self.folder / "sequences" / sid
+        m = load_motion(base / "motion.npz")
+        text_file = base / "text.json"
+        texts = json.loads(text_file.read_bytes().decode("utf-8")).get("texts", []) if text_file.is_file() else []
+        entry = (m["a.features"], m["b.features"], [str(t) for t in texts])
+        self._cache[sid] = entry
+        while len(self._cache) > _CACHE_SEQUENCES:
+            self._cache.popitem(last=False)
+        return entry
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"window {i} of {len(self)}")
+        i = i % len(self)
+        sid, start = self.index[i]
+        fa, fb, texts = self._sequence(sid)
+        stop = start + self.window
+        item = self.aug.make(i, sid, start, fa[start:stop], fb[start:stop], texts)
+        if self.renders:
+            item["rgb"], item["rendered"] = self._rgb(sid, start)
+        return item
+
+    def _rgb(self, sid: str, start: int) -> tuple[torch.Tensor, torch.Tensor]:
+        from PIL import Image
+
+        views = self.manifest["sequences"][sid].get("render_views", [])
+        base = self.folder / "sequences" / sid / "renders" / "views"
+        frames = range(start, start + self.window)
+        images: dict[tuple[int, int], np.ndarray] = {}
+        for v, view in enumerate(views):
+            for k, f in enumerate(frames):
+                path = base / view / "rgb" / f"{f:05d}.png"
+                if path.is_file():
+                    with Image.open(path) as im:
+                        images[v, k] = np.asarray(im.convert("RGB"))
+        sizes = {im.shape for im in images.values()}
+        if len(sizes) > 1:
+            raise ValueError(f"sequence {sid!r}: rendered views have different image sizes {sorted(sizes)}")
+        h, w = next(iter(sizes))[:2] if sizes else (0, 0)
+        rgb = np.zeros((len(views), self.window, h, w, 3), dtype=np.uint8)
+        for (v, k), im in images.items():
+            rgb[v, k] = im
+        rendered = np.array([all((v, k) in images for v in range(len(views))) and bool(views) for k in range(self.window)])
+        return torch.from_numpy(rgb), torch.from_numpy(rendered)
+
+
+class ShardWindows(IterableDataset):
+    """Streams windows from WebDataset shards (``paths``), for data that does not fit in memory.
+
+    Each epoch the shard order is shuffled with ``(seed, epoch)`` (``shuffle_shards``), the shards
+    are dealt to DataLoader workers round-robin, and windows pass through a shuffle buffer of
+    ``buffer`` items (0: keep order). Windows, augmentation and normalisation as
+    :class:`MotionWindows` (stats default: the ``stats/`` folder beside the first shard).
+    """
+
+    def __init__(self, paths: str | Path | Sequence[str | Path], window: int = 64, stride: int | None = None,
+                 normalize: bool = False, stats=None, mirror_p: float = 0.0, seed: int = 0, buffer: int = 1000,
+                 shuffle_shards: bool = True):  # fmt: skip
+        self.window, self.stride, mirror_p = _check_args(window, stride, mirror_p)
+        self.paths = _shard_list(paths) or []
+        if not self.paths:
+            raise ValueError(f"ShardWindows needs .tar shard paths, got {paths!r}")
+        missing = [str(p) for p in self.paths if not p.is_file()]
+        if missing:
+            raise ValueError(f"shards not found: {missing[:5]}")
+        if not isinstance(buffer, int) or buffer < 0:
+            raise ValueError(f"buffer must be a non-negative int, got {buffer!r}")
+        self.buffer, self.shuffle_shards = buffer, shuffle_shards
+        self.aug = _Augment(mirror_p, seed, normalize, stats, self.paths[0].parent)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Fresh, reproducible shard order and augmentation draws for ``epoch``."""
+        self.aug.set_epoch(epoch)
+
+    def _my_shards(self) -> list[Path]:
+        order = list(range(len(self.paths)))
+        if self.shuffle_shards:
+            order = list(np.random.default_rng([self.aug.seed, self.aug.epoch]).permutation(len(order)))
+        info = get_worker_info()
+        wid, n = (info.id, info.num_workers) if info is not None else (0, 1)
+        return [self.paths[i] for i in order[wid::n]]
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        info = get_worker_info()
+        rng = random.Random(f"{self.aug.seed}-{self.aug.epoch}-{info.id if info is not None else 0}")
+        buf: list[dict] = []
+        for sid, fa, fb, texts in _shard_sequences(self._my_shards()):
+            for s in window_starts(len(fa), self.window, self.stride):
+                key = int.from_bytes(hashlib.blake2b(f"{sid}:{int(s)}".encode(), digest_size=8).digest(), "little")
+                item = self.aug.make(key, sid, int(s), fa[s : s + self.window], fb[s : s + self.window], texts)
+                if self.buffer <= 0:
+                    yield item
+                    continue
+                buf.append(item)
+                if len(buf) >= self.buffer:
+                    yield buf.pop(rng.randrange(len(buf)))
+        rng.shuffle(buf)
+        yield from buf
+
+
+__all__ = ["MotionWindows", "ShardWindows", "window_starts"]
