@@ -110,9 +110,10 @@ class Camera:
         return M @ np.diag([-1.0, -1.0, 1.0, 1.0])
 
     def principal_offset(self) -> tuple[float, float]:
-        """Mitsuba's ``principal_point_offset_x/y``: the principal point's offset from the image
-        centre as a fraction of the image width / height (+x right, +y down in the image)."""
-        return ((self.K[0, 2] - self.width / 2) / self.width, (self.K[1, 2] - self.height / 2) / self.height)
+        """Mitsuba's ``principal_point_offset_x/y``: the image centre's offset from the principal
+        point as a fraction of the image width / height. Mitsuba (3.9) puts the principal point at
+        pixel ``((0.5 - ox) W, (0.5 - oy) H)`` -- measured on its renders and ``sample_direction``."""
+        return ((self.width / 2 - self.K[0, 2]) / self.width, (self.height / 2 - self.K[1, 2]) / self.height)
 
     def mitsuba_sensor(self, spp: int = 16, film: dict | None = None, sampler: str = "independent") -> dict:
         """A ``perspective`` sensor dict for ``mi.load_dict`` (``film`` defaults to an ``hdrfilm`` of
@@ -144,7 +145,7 @@ class Camera:
         M = np.asarray(to_world, dtype=float).reshape(4, 4) @ np.diag([-1.0, -1.0, 1.0, 1.0])
         R = M[:3, :3].T
         f = width / (2.0 * math.tan(math.radians(fov_x_deg) / 2.0))
-        K = np.array([[f, 0, width / 2 + principal_offset[0] * width], [0, f, height / 2 + principal_offset[1] * height], [0, 0, 1]])
+        K = np.array([[f, 0, width / 2 - principal_offset[0] * width], [0, f, height / 2 - principal_offset[1] * height], [0, 0, 1]])
         return cls(name, K, R, -R @ M[:3, 3], width, height, near, far)
 
     # ------------------------------------------------------------------ files

@@ -1,0 +1,239 @@
+"""Render stage speed and memory: the full pipeline against a bare Mitsuba render loop.
+
+Scene: the ``hug`` ground-truth scene (``make_scene(SceneParams(type="hug", seed=0, fps=15))``,
+cached in ``benchmarks/results/render_hug_seed0_15fps.npz``; ``--sequence`` loads another
+InteractionSequence), ``--frames`` frames around its middle (the bodies in contact), a ring of
+``--views`` cameras, ``--size`` square images, the default template (studio) and sample count.
+
+* **bare**: one :class:`SequenceRenderer` scene; per frame ``set_frame`` (vertex positions and
+  normals through ``mi.traverse``) and per view ``mi.render(scene, sensor=i)`` with the image
+  fetched to the host. Bodies are evaluated beforehand (not timed).
+* **pipeline**: :func:`render_sequence` on the same frames: body evaluation, RGB, depth and mask
+  pass, keypoints and visibility, PNG/EXR encoding on the thread pool, resume markers, the
+  per-render files. Its figure is the ``images_per_s`` it records (renderer construction
+  excluded, as for the bare loop).
+
+Both after a warm-up (JIT compilation), run alternately (load from other processes hits both
+alike); medians of ``--repeats`` runs; ratio = pipeline / bare (goal >= 0.8), by wall time and
+by CPU time of the process (all threads; steadier when other processes share the machine). Then the memory check: ``--memory-frames`` frames (the sequence tiled) at
+``--memory-size`` pixels, one view, full pipeline, resident set size sampled every 0.2 s.
+
+    python benchmarks/bench_render.py [--size 512] [--views 4] [--frames 2] [--repeats 3]
+        [--variant llvm_ad_rgb] [--memory-frames 1000] [--memory-size 64] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+CACHE = REPO / "benchmarks" / "results" / "render_hug_seed0_15fps.npz"
+
+
+def rss_mb() -> float:
+    """Resident set size of this process in MiB (Linux /proc)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def load_sequence(path: Path | None):
+    from dualhuman_builder.tracks import InteractionSequence
+
+    if path is not None:
+        return InteractionSequence.load(path)
+    if CACHE.is_file():
+        return InteractionSequence.load(CACHE)
+    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+
+    print("generating the hug scene (once; cached in benchmarks/results/) ...", flush=True)
+    seq = make_scene(SceneParams(type="hug", seed=0, fps=15)).sequence
+    CACHE.parent.mkdir(parents=True, exist_ok=True)
+    seq.save(CACHE)
+    return seq
+
+
+def sub_sequence(seq, idx):
+    """The frames ``idx`` of ``seq`` (tiled when ``idx`` repeats frames) as a new sequence."""
+    from dualhuman_builder.tracks import BodyTrack, InteractionSequence
+
+    actors = [BodyTrack(pose=a.pose[idx], transl=a.transl[idx], shape=a.shape, fps=a.fps, bone_names=a.bone_names,
+                        shape_names=a.shape_names, model=a.model, model_version=a.model_version, actor=a.actor)
+              for a in seq.actors]  # fmt: skip
+    return InteractionSequence(actors)
+
+
+def bare_loop(renderer, verts) -> tuple[float, float]:
+    """``(images/s, CPU seconds per image)`` of set_frame + mi.render per view (image fetched to
+    the host), one pass."""
+    import mitsuba as mi
+
+    scene, sensors, spp = renderer.scene, renderer._sensors, renderer.spp
+    t, c = time.perf_counter(), time.process_time()
+    n = 0
+    for f in range(len(verts[0])):
+        renderer.set_frame(verts[0][f], verts[1][f])
+        for k, s in enumerate(sensors):
+            np.asarray(mi.render(scene, sensor=s, spp=spp, seed=f * len(sensors) + k))
+            n += 1
+    return n / (time.perf_counter() - t), (time.process_time() - c) / n
+
+
+def compare(renderer, seq, verts, cams, spp, variant, repeats: int) -> tuple[list, list, dict]:
+    """Alternating runs of the bare loop and of render_sequence (so that load from other
+    processes hits both alike), after a warm-up of each; returns both lists of
+    ``(images/s, CPU seconds per image)``."""
+    from dualhuman_builder.render.stage import render_sequence
+
+    quiet = lambda s: None  # noqa: E731
+    bare, full, doc = [], [], {}
+    with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
+        bare_loop(renderer, [v[:1] for v in verts])  # warm-up: JIT compilation
+        render_sequence(sub_sequence(seq, [0]), Path(tmp) / "warm", cams, spp=spp, variant=variant, log=quiet)
+        for r in range(repeats):
+            bare.append(bare_loop(renderer, verts))
+            doc = render_sequence(seq, Path(tmp) / f"run{r}", cams, spp=spp, variant=variant, log=quiet)
+            full.append((doc["images_per_s"], doc["cpu_seconds"] / doc["images"]))
+    return bare, full, doc
+
+
+def encode_ms(size: int, repeats: int = 5) -> dict:
+    """Milliseconds to encode one view's files (sRGB PNG, depth EXR, mask PNG) at ``size``."""
+    from dualhuman_builder.render.stage import write_depth_exr, write_mask_png, write_rgb_png
+
+    rng = np.random.default_rng(0)
+    rgb = rng.random((size, size, 3), dtype=np.float32) * 0.3 + 0.2  # noisy, like a 16 spp render
+    depth = (2.0 + rng.random((size, size), dtype=np.float32)).astype(np.float32)
+    mask = (rng.random((size, size)) > 0.8).astype(np.uint8)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, fn, arr, ext in (("rgb png", write_rgb_png, rgb, "png"), ("depth exr", write_depth_exr, depth, "exr"),
+                                   ("mask png", write_mask_png, mask, "png")):  # fmt: skip
+            ts = []
+            for k in range(repeats):
+                t = time.perf_counter()
+                fn(Path(tmp) / f"{k}.{ext}", arr)
+                ts.append(time.perf_counter() - t)
+            out[name] = round(statistics.median(ts) * 1e3, 2)
+    return out
+
+
+def memory_check(seq, frames: int, size: int, spp: int, variant) -> dict:
+    """RSS over a ``frames``-frame render (the sequence tiled), one view of ``size`` pixels."""
+    from dualhuman_builder.render.stage import render_sequence, stage_cameras
+
+    idx = np.arange(frames) % seq.num_frames
+    long = sub_sequence(seq, idx)
+    cams = stage_cameras(long, views=1, size=size, frames=np.arange(min(frames, seq.num_frames)))
+    samples, steps, stop = [], [], threading.Event()
+
+    def sampler():
+        while not stop.is_set():
+            samples.append(rss_mb())
+            stop.wait(0.2)
+
+    def log(line):
+        if "images (" in line:
+            steps.append((line.split(" images")[0].split()[-1], round(rss_mb(), 1)))
+
+    before = rss_mb()
+    th = threading.Thread(target=sampler, daemon=True)
+    th.start()
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench-render-mem-") as tmp:
+        doc = render_sequence(long, Path(tmp) / "long", cams, spp=spp, variant=variant, log=log)
+    stop.set()
+    th.join()
+    return {"frames": frames, "size": size, "spp": spp, "seconds": round(time.perf_counter() - t, 1),
+            "images_per_s": doc["images_per_s"], "rss_before_mb": round(before, 1),
+            "rss_at_10pct_mb": steps[0][1] if steps else None, "rss_end_mb": steps[-1][1] if steps else None,
+            "rss_max_mb": round(max(samples), 1), "rss_steps_mb": steps}  # fmt: skip
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the renderer's default, 16)")
+    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--variant", default=None, help="Mitsuba variant (default: the best that renders here)")
+    ap.add_argument("--sequence", type=Path, default=None, help="an InteractionSequence .npz instead of the hug scene")
+    ap.add_argument("--memory-frames", type=int, default=1000, help="0 skips the memory check")
+    ap.add_argument("--memory-size", type=int, default=64)
+    ap.add_argument("--json", type=Path, default=None, help="default benchmarks/results/render_<variant>_<size>.json")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(1)  # the body model is a small part; leave the cores to the renderer
+
+    from dualhuman_builder.body.model import get_body_model
+    from dualhuman_builder.render.renderer import DEFAULT_SPP, SequenceRenderer, body_model_uvs
+    from dualhuman_builder.render.stage import stage_cameras
+
+    spp = args.spp or DEFAULT_SPP
+    seq = load_sequence(args.sequence)
+    mid = seq.num_frames // 2
+    idx = np.clip(mid + np.arange(args.frames) - args.frames // 2, 0, seq.num_frames - 1)
+    sub = sub_sequence(seq, idx)
+    cams = stage_cameras(sub, views=args.views, size=args.size)
+    model = get_body_model()
+    uv = body_model_uvs(model)
+    t = time.perf_counter()
+    renderer = SequenceRenderer(model.faces, model.num_vertices, cams, spp=spp, variant=args.variant, uv=uv[0], face_uv=uv[1])
+    build_s = time.perf_counter() - t
+    variant = renderer.variant
+    print(f"{variant} (Mitsuba {renderer.mitsuba_version}), {platform.machine()}, {args.size}x{args.size}, {spp} spp, "
+          f"{args.views} views x {args.frames} frames, template {renderer.template.name}, median of {args.repeats}")  # fmt: skip
+    print(f"scene build (once per sequence): {build_s:.2f} s")
+    res = [a.compute(frames=np.arange(sub.num_frames)) for a in sub.actors]
+    bare_runs, full_runs, doc = compare(renderer, sub, [res[0]["vertices"], res[1]["vertices"]], cams, spp, args.variant,
+                                        args.repeats)  # fmt: skip
+    del renderer
+    bare, full = statistics.median(r[0] for r in bare_runs), statistics.median(r[0] for r in full_runs)
+    bare_cpu, full_cpu = statistics.median(r[1] for r in bare_runs), statistics.median(r[1] for r in full_runs)
+    enc = encode_ms(args.size)
+    ratio = full / bare
+    ratio_cpu = bare_cpu / full_cpu
+    rows = [("bare mi.render loop (set_frame + render)", bare, bare_cpu), ("full pipeline (render_sequence)", full, full_cpu)]
+    print(f"{'':44s}{'images/s':>10s}{'ms/image':>10s}{'CPU ms/image':>14s}")
+    for name, rate, cpu in rows:
+        print(f"{name:44s}{rate:10.2f}{1000 / rate:10.1f}{1000 * cpu:14.1f}")
+    print(f"pipeline / bare: {ratio:.3f} by wall time, {ratio_cpu:.3f} by CPU time (goal >= 0.8)")
+    print(f"  runs (images/s): bare {[round(x[0], 3) for x in bare_runs]}, pipeline {[round(x[0], 3) for x in full_runs]}")
+    print("encoding one view on one thread, ms: " + ", ".join(f"{k} {v}" for k, v in enc.items()))
+    result = {"variant": variant, "mitsuba": doc.get("mitsuba"), "size": args.size, "spp": spp, "views": args.views,
+              "frames": args.frames, "repeats": args.repeats, "template": doc.get("template"), "scene_build_s": round(build_s, 2),
+              "bare_images_per_s": round(bare, 3), "pipeline_images_per_s": round(full, 3), "ratio": round(ratio, 3),
+              "bare_cpu_ms_per_image": round(1000 * bare_cpu, 1), "pipeline_cpu_ms_per_image": round(1000 * full_cpu, 1),
+              "ratio_cpu": round(ratio_cpu, 3), "bare_runs": bare_runs, "pipeline_runs": full_runs,
+              "encode_ms": enc, "machine": platform.machine()}  # fmt: skip
+    if args.memory_frames:
+        mem = memory_check(seq, args.memory_frames, args.memory_size, spp, args.variant)
+        print(f"memory over {mem['frames']} frames at {mem['size']}x{mem['size']}, 1 view ({mem['seconds']} s, "
+              f"{mem['images_per_s']} images/s): RSS before {mem['rss_before_mb']} MiB, at 10 % {mem['rss_at_10pct_mb']}, "
+              f"end {mem['rss_end_mb']}, max {mem['rss_max_mb']}")  # fmt: skip
+        print("  RSS at each 10 %: " + ", ".join(f"{n}: {r}" for n, r in mem["rss_steps_mb"]))
+        result["memory"] = mem
+    path = args.json or REPO / "benchmarks" / "results" / f"render_{variant}_{args.size}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
