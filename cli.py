@@ -126,9 +126,14 @@ def demo(workspace: Path):
     with Workspace.open(workspace, readonly=True) as ws:
         console.print(status_table(ws.status_rows(), STAGES, f"workspace {ws.root}"))
     console.print(f"demo finished in {result.seconds:.1f} s; its outputs:")
-    for _, path in sorted(result.outputs.items()):
+    images = [p for k, p in result.outputs.items() if k.startswith("views/")]
+    for _, path in sorted((k, p) for k, p in result.outputs.items() if not k.startswith("views/")):
         console.print(f"  {path}", highlight=False, soft_wrap=True)
-    console.print("look at preview.png and strip.png first; preview.glb opens in any glTF viewer (Blender, MeshLab, a browser)",
+    if images:
+        views = images[0].parents[2]
+        console.print(f"  {views}/<view>/{{rgb,depth,mask}}/<frame>: {len(images)} images", highlight=False, soft_wrap=True)
+    console.print("look at preview.png, strip.png and contact_sheet.png first; preview.glb opens in any glTF viewer "
+                  "(Blender, MeshLab, a browser); the dataset is in export/ (README.md is its card)",
                   highlight=False, soft_wrap=True)  # fmt: skip
 
 
@@ -735,7 +740,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
     closed-form retarget of the segment orientations, refined over windows of frames by L-BFGS on
     orientation, tracker, smoothness, floor and foot-stance terms plus an SDF collision term between
-    the two bodies. Writes sequence.npz, shapes.json, frames.npz and report.html / report.png.
+    the two bodies. Writes bodies.npz, shapes.json, frames.npz and report.html / report.png.
     Runs `sync` and `fuse` first if needed.
 
     Example:  dualhuman fit WS --take T001
@@ -748,6 +753,168 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, 
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
+
+
+# ---------------------------------------------------------------------------- contacts / render
+@main.command()
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--take", required=True, help="Take name in the workspace (its fit stage must be complete).")
+@click.option("--threshold", type=click.FloatRange(min=0.0, max=0.5), default=0.02, show_default=True,
+              help="Distance (m) under which a vertex counts as in contact; penetrating vertices always do.")
+@click.option("--band", type=click.FloatRange(min=0.001, max=1.0), default=0.05, show_default=True,
+              help="Distances (m) are computed and stored within this band of the other body; NaN beyond.")
+@click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")
+def contacts(workspace: Path, take: str, threshold: float, band: float, force: bool):
+    """Per-vertex contacts between the two fitted bodies, frame by frame (libigl).
+
+    For every frame, the signed distance of each body's vertices to the other body's surface
+    (libigl, pseudonormal sign, within --band; body parts and frames whose boxes are farther apart
+    are skipped without a query), both ways. Writes contacts.npz (per-vertex labels, bit-packed;
+    float16 distances; per-frame flag) and contacts.json (region-level contact events: body-part
+    pairs with start and end frames, like CHI3D's signatures; counts; speed).
+
+    Example:  dualhuman contacts WS --take T001
+    """
+    from dualhuman_builder.contacts.stage import run_contacts
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = run_contacts(ws, take, threshold_m=threshold, band_m=band, force=force, log=console.print)
+        console.print(f"contacts {'up to date' if res.skipped else 'done'}: {res.artifacts.get('contacts.json')}", highlight=False)
+
+
+@main.command()
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--take", required=True, help="Take name in the workspace (its fit stage must be complete).")
+@click.option("--views", type=click.IntRange(min=1, max=256), default=8, show_default=True, help="Cameras on the ring.")
+@click.option("--size", type=click.IntRange(min=16, max=8192), default=512, show_default=True, help="Image width and height (pixels).")
+@click.option("--spp", type=click.IntRange(min=1), default=16, show_default=True, help="Samples per pixel of the RGB images.")
+@click.option("--radius", type=click.FloatRange(min=0.1), default=3.0, show_default=True, help="Ring radius (m) around the pair.")
+@click.option("--height", type=float, default=1.4, show_default=True, help="Camera height above the floor (m).")
+@click.option("--fov", type=click.FloatRange(min=1.0, max=170.0), default=50.0, show_default=True, help="Horizontal field of view (degrees).")
+@click.option("--jitter-seed", type=int, default=None, help="Perturb each view's azimuth, radius and height with this seed.")
+@click.option("--rig", "rig_file", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="JSON camera rig file: explicit cameras instead of the ring (see the README).")
+@click.option("--template", default="studio", show_default=True, help="Scene template in render_templates/ (name or path).")
+@click.option("--every", type=click.IntRange(min=1), default=1, show_default=True, help="Render every N-th frame.")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Render at most this many frames.")
+@click.option("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb, else llvm_ad_rgb, else scalar_rgb).")
+@click.option("--no-sheet", is_flag=True, help="Do not draw the contact sheet afterwards.")
+@click.option("--force", is_flag=True, help="Render again even when the stage is up to date.")
+def render(workspace: Path, take: str, views: int, size: int, spp: int, radius: float, height: float, fov: float,
+           jitter_seed: int | None, rig_file: Path | None, template: str, every: int, max_frames: int | None,
+           variant: str | None, no_sheet: bool, force: bool):  # fmt: skip
+    """Render the fitted pair from a ring of cameras with Mitsuba 3, with full ground truth.
+
+    Per view and frame: RGB (sRGB PNG), depth (EXR, float32 camera z in metres), instance mask (PNG:
+    0 background, 1 and 2 the actors); per render: 2D keypoints of both actors (22 joints and COCO)
+    with per-joint visibility from a depth test, cameras (K and world-to-camera R|t, OpenCV) and
+    visibility statistics. The scene is built once and only vertex positions change per frame. An
+    interrupted render (say, a full disk) resumes from the last complete frame when run again.
+    Then draws contact_sheet.png (views x frames with masks and keypoints, and the contacts).
+
+    Example:  dualhuman render WS --take T001 --views 8 --size 512
+    """
+    from dualhuman_builder.render.sheet import run_sheet
+    from dualhuman_builder.render.stage import run_render
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = run_render(ws, take, views=views, size=size, spp=spp, radius_m=radius, height_m=height, fov_deg=fov,
+                         jitter_seed=jitter_seed, rig_file=rig_file, template=template, every=every, max_frames=max_frames,
+                         variant=variant, force=force, log=console.print)  # fmt: skip
+        console.print(f"render {'up to date' if res.skipped else 'done'}: {ws.artifact_dir('render', take)}", highlight=False)
+        if not no_sheet:
+            sheet = run_sheet(ws, take, force=force, log=console.print)
+            console.print(f"contact sheet: {sheet.artifacts.get('contact_sheet.png')}", highlight=False)
+
+
+# ---------------------------------------------------------------------------- export
+class _ExportGroup(click.Group):
+    """`dualhuman export WS OUT` builds; `dualhuman export verify|shards ...` are subcommands."""
+
+    def resolve_command(self, ctx, args):
+        if args and args[0] not in self.commands and not args[0].startswith("-"):
+            args = ["build", *args]
+        return super().resolve_command(ctx, args)
+
+
+@main.group(cls=_ExportGroup)
+def export():
+    """The training-ready dataset: build it, verify it, shard it.
+
+    \b
+      dualhuman export WS OUT            every fitted take of WS -> the dataset folder OUT
+      dualhuman export verify OUT        checksums, schema, splits, shapes, NaNs
+      dualhuman export shards OUT DIR    WebDataset tar shards of a split, for streaming
+    """
+
+
+@export.command("build")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--take", "takes", multiple=True, help="Export only this take (repeatable; default: every fitted take).")
+@click.option("--split", "split_ratio", type=click.FloatRange(min=0.0, max=1.0, min_open=True), default=0.75,
+              show_default=True, help="Share of sequences in the train split (the rest is test).")
+@click.option("--subject-disjoint", is_flag=True, help="No performer in both splits.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the split.")
+@click.option("--strict", is_flag=True, help="Fail when a take lacks a stage instead of exporting what is complete.")
+def export_build(workspace: Path, out: Path, takes: tuple[str, ...], split_ratio: float, subject_disjoint: bool, seed: int,
+                 strict: bool):  # fmt: skip
+    """Export every fitted take of WORKSPACE as a dataset folder OUT.
+
+    Per sequence: both actors' anny parameters and joints, the 269-dim motion features, contacts
+    (bit-packed labels, distances, region events), labels and texts, cameras and renders; at the
+    top a manifest (versions, units, axes, SHA-256 of every file), a schema of every array, seeded
+    train/test splits, feature mean/std and a dataset card (README.md). Re-running completes a
+    partial export and rewrites only what changed.
+
+    Example:  dualhuman export WS WS/export
+    """
+    from dualhuman_builder.export.collect import run_export
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        m = run_export(ws, out, list(takes) or None, strict=strict, split_ratio=split_ratio,
+                       subject_disjoint=subject_disjoint, seed=seed, log=console.print)  # fmt: skip
+    console.print(f"exported {len(m['sequences'])} sequence(s) to {out}; check it with `dualhuman export verify {out}`",
+                  highlight=False)  # fmt: skip
+
+
+@export.command("verify")
+@click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
+def export_verify(out: Path):
+    """Check an exported dataset: every file's SHA-256 against the manifest, arrays against the
+    schema (shapes, dtypes, no NaN), splits disjoint and complete, every sequence has what the
+    manifest promises. Never unpickles. Exit status 1 when a problem is found.
+
+    Example:  dualhuman export verify WS/export
+    """
+    from dualhuman_builder.export.verify import verify_export
+
+    problems = verify_export(out)
+    for p in problems:
+        console.print(f"[red]problem[/]: {p}", highlight=False)
+    if problems:
+        sys.exit(1)
+    console.print(f"[green]{out}: verified[/]", highlight=False)
+
+
+@export.command("shards")
+@click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("shard_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--split", type=click.Choice(["train", "test", "all"]), default="train", show_default=True)
+@click.option("--max-mb", type=click.FloatRange(min=0.001), default=256.0, show_default=True, help="Largest shard size (MiB).")
+def export_shards(out: Path, shard_dir: Path, split: str, max_mb: float):
+    """Write a split of the export OUT as WebDataset tar shards into SHARD_DIR (one sample per
+    sequence: motion, contacts, events, text, cameras, keypoints).
+
+    Example:  dualhuman export shards WS/export WS/shards --split train
+    """
+    from dualhuman_builder.export.shards import write_shards
+
+    paths = write_shards(out, shard_dir, max_bytes=int(max_mb * 2**20), split=split)
+    console.print(f"{len(paths)} shard(s) in {shard_dir}", highlight=False)
 
 
 if __name__ == "__main__":

@@ -25,8 +25,15 @@ What it does now (each step goes through the workspace, so a second run is a no-
    and tracker mounts (``sync.json``), fused skeletons, both actors' anny bodies fitted jointly
    with the collision term (``bodies.npz``, ``shapes.json``) and ``report.html`` / ``report.png``.
 
-Later stages (contacts, render, export) join here as they land; the demo always runs
-the whole pipeline that exists.
+7. runs ``contacts`` (per-vertex contacts between the fitted bodies, region events:
+   ``contacts.npz``, ``contacts.json``), ``render`` (Mitsuba: four views around the pair, every 10th
+   frame at 192 px: RGB, depth, masks, keypoints, cameras, under ``artifacts/DEMO/_take/render/``)
+   and ``sheet`` (``contact_sheet.png``: views x frames with masks and keypoints overlaid and the
+   contacts painted on the meshes);
+
+8. exports the dataset to ``WS/export/`` and verifies it (``dualhuman export verify WS/export``).
+
+The demo always runs the whole pipeline that exists.
 """
 
 from __future__ import annotations
@@ -46,6 +53,8 @@ DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
 #: The demo's simulated devices play this many times faster than real time while recorded.
 DEMO_CAPTURE_SPEED = 2.0
+#: The demo's render: four views of every 10th frame, small and quick on a CPU.
+DEMO_RENDER = {"views": 4, "size": 192, "spp": 8, "every": 10}
 
 
 @dataclass
@@ -163,6 +172,32 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         for stage in ("sync", "fuse"):
             result.outputs.update(ws.artifacts(stage, DEMO_TAKE))
         _note(result, log, "fit", res)
+
+        # contacts -> render (a small ring: the demo is about looking, not volume) -> contact sheet
+        from dualhuman_builder.contacts.stage import run_contacts
+        from dualhuman_builder.render.sheet import run_sheet
+        from dualhuman_builder.render.stage import run_render
+
+        _note(result, log, "contacts", run_contacts(ws, DEMO_TAKE, log=log))
+        _note(result, log, "render", run_render(ws, DEMO_TAKE, log=log, **DEMO_RENDER))
+        _note(result, log, "sheet", run_sheet(ws, DEMO_TAKE, log=log))
+
+        # the dataset, verified
+        from dualhuman_builder.export.collect import run_export
+        from dualhuman_builder.export.verify import verify_export
+
+        export_dir = ws.root / "export"
+        before = (export_dir / "manifest.json").read_bytes() if (export_dir / "manifest.json").exists() else None
+        run_export(ws, export_dir, log=log)
+        problems = verify_export(export_dir)
+        if problems:
+            from dualhuman_builder.errors import DualhumanError
+
+            raise DualhumanError(f"the demo's export does not verify: {problems[:5]}")
+        changed = before != (export_dir / "manifest.json").read_bytes()
+        (result.ran if changed else result.up_to_date).append("export")
+        log(f"export: {export_dir} ({'written' if changed else 'up to date'}; verified)")
+        result.outputs["export"] = export_dir
     result.seconds = time.perf_counter() - t0
     return result
 

@@ -27,9 +27,10 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     ws_path = tmp_path / "demo"
     logs = []
     first = run_demo(ws_path, log=logs.append)
-    assert first.ran == ["scene", "devices", "capture", "fit"] and first.up_to_date == []
+    stages = ["scene", "devices", "capture", "fit", "contacts", "render", "sheet", "export"]
+    assert first.ran == stages and first.up_to_date == []
     out = first.outputs
-    assert set(out) == {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
+    assert set(out) >= {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
                         "take.mcap", "capture.json", "sync.npz", "sync.json", "fuse.json", "bodies.npz", "shapes.json",
                         "frames.npz", "report.html", "report.png",
                         *(f"{a}.{k}.npz" for a in ("sim-a", "sim-b") for k in ("skeleton", "trackers")),
@@ -77,7 +78,23 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
         for stage in ("scene", "devices", "capture"):
             assert ws.stage_record(stage, DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
         assert [a.shape_source for a in ws.actors()] == ["stature", "stature"]
-    mtimes = {p: p.stat().st_mtime_ns for p in out.values()}
+    # contacts, renders with ground truth, the contact sheet, and a verified export
+    from dualhuman_builder.contacts.compute import ContactResult
+    from dualhuman_builder.export.verify import verify_export
+
+    contacts = ContactResult.load(out["contacts.npz"])
+    assert contacts.labels.shape == (2, fitted.num_frames, 13718) and contacts.frame_contact.any()
+    assert any("hand" in (e["region_a"] + e["region_b"]).lower() for e in contacts.events)
+    cams = json.loads(out["cameras.json"].read_text())
+    assert len(cams["cameras"]) == 4
+    rgb = [k for k in out if k.endswith(".png") and "/rgb/" in k]
+    assert len(rgb) == 4 * len(range(0, fitted.num_frames, 10))
+    mask = np.asarray(Image.open(out[rgb[0].replace("/rgb/", "/mask/")]))
+    assert set(np.unique(mask)) == {0, 1, 2}
+    sheet = Image.open(out["contact_sheet.png"])
+    assert sheet.size[0] > 4 * 200 and np.asarray(sheet.convert("L")).std() > 10
+    assert verify_export(out["export"]) == []
+    mtimes = {p: p.stat().st_mtime_ns for p in out.values() if p.is_file()}
     second = run_demo(ws_path, log=logs.append)
-    assert second.ran == [] and second.up_to_date == ["scene", "devices", "capture", "fit"]
-    assert {p: p.stat().st_mtime_ns for p in second.outputs.values()} == mtimes  # nothing rewritten
+    assert second.ran == [] and second.up_to_date == stages
+    assert {p: p.stat().st_mtime_ns for p in second.outputs.values() if p.is_file()} == mtimes  # nothing rewritten

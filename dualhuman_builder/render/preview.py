@@ -24,13 +24,15 @@ def render_preview(
     azimuth_deg: float = 35.0,
     elevation_deg: float = 25.0,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    floor_y: float | None = None,
 ) -> dict:
     """Render ``meshes`` — ``(vertices (V, 3) world metres, faces (F, 3), rgb)`` with ``rgb`` one
     colour ``(3,)`` or per-vertex colours ``(V, 3)``, in [0, 1] — to ``path``.
 
     The camera looks at the centre of ``bounds`` (default: the meshes' bounding box) from
     ``azimuth_deg`` about +Y (0 looks along -Z from +Z) and ``elevation_deg`` above the horizon, far
-    enough for the box to fill about 80 % of the frame. Returns ``{"variant", "seconds"}``.
+    enough for the box to fill about 80 % of the frame. The floor lies at ``floor_y`` (default: the
+    bottom of ``bounds``). Returns ``{"variant", "seconds"}``.
     """
     import trimesh
 
@@ -65,7 +67,8 @@ def render_preview(
         },
         "floor": {
             "type": "rectangle",
-            "to_world": mi.ScalarTransform4f().translate([float(centre[0]), float(lo[1]), float(centre[2])])
+            "to_world": mi.ScalarTransform4f().translate([float(centre[0]), float(lo[1] if floor_y is None else floor_y),
+                                                          float(centre[2])])
             @ mi.ScalarTransform4f().rotate([1, 0, 0], -90)
             @ mi.ScalarTransform4f().scale(4 * radius),
             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.6, 0.6]}},

@@ -24,9 +24,12 @@ import numpy as np
 from dualhuman_builder.body.joints import JOINT22_PARENTS
 from dualhuman_builder.errors import DualhumanError
 
-#: Tint of each actor's mask (RGB 0-255), and the skeleton colours.
-MASK_COLOURS = ((60, 110, 230), (240, 140, 40))
-SKELETON_COLOURS = ((20, 50, 160), (170, 80, 0))
+#: Tint of each actor's mask (RGB 0-255) and the skeleton colours: actor 1 orange-red, actor 2 blue,
+#: as the meshes of the contact row (and the demo's previews).
+MASK_COLOURS = ((235, 110, 60), (60, 110, 230))
+SKELETON_COLOURS = ((150, 50, 10), (20, 50, 160))
+MESH_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
+CONTACT_COLOUR = (0.98, 0.85, 0.15)
 
 
 def pick_frames(rendered: np.ndarray, contact_counts: np.ndarray | None, n: int) -> list[int]:
@@ -81,6 +84,42 @@ def _tile(rgb_path: Path, mask_path: Path, kps: np.ndarray, scale: float):
     return img
 
 
+def _contact_row(sequence, labels: np.ndarray, faces: np.ndarray, frames: list[int], tile_width: int, spp: int):
+    """Per frame, both meshes with the contact vertices painted, framed on the contact (the contact
+    vertices' box grown by 15 cm) seen across the line between the actors; the whole pair when the
+    frame has no contact. ``labels (2, T, V)``."""
+    from PIL import Image, ImageDraw
+
+    from dualhuman_builder.render.preview import render_preview
+
+    verts = [a.vertices() for a in sequence.actors]
+    size = (tile_width, round(tile_width * 0.8))
+    row = Image.new("RGB", (tile_width * len(frames), size[1]), (255, 255, 255))
+    with tempfile.TemporaryDirectory(prefix="dualhuman-sheet-") as tmp:
+        for n, f in enumerate(frames):
+            meshes, touching = [], []
+            for i in range(2):
+                rgb = np.tile(np.asarray(MESH_COLOURS[i]), (verts[i].shape[1], 1))
+                rgb[labels[i, f]] = CONTACT_COLOUR
+                meshes.append((verts[i][f], faces, rgb))
+                touching.append(verts[i][f][labels[i, f]])
+            pts = np.concatenate(touching)
+            if len(pts):
+                bounds = (pts.min(0) - 0.15, pts.max(0) + 0.15)
+            else:
+                allv = np.concatenate([v[f] for v in verts])
+                bounds = (allv.min(0), allv.max(0))
+            across = np.asarray(sequence.actors[1].transl[f] - sequence.actors[0].transl[f], dtype=float)
+            azimuth = float(np.degrees(np.arctan2(-across[2], across[0])))  # across the actors' line, actor 1 on the left
+            tile = Path(tmp) / f"{n}.png"
+            render_preview(meshes, tile, size=size, spp=spp, azimuth_deg=azimuth, elevation_deg=15.0, bounds=bounds, floor_y=0.0)
+            img = Image.open(tile).convert("RGB")
+            ImageDraw.Draw(img).text((6, 4), f"frame {f}: {int(labels[0, f].sum())} + {int(labels[1, f].sum())} contact vertices",
+                                     fill=(20, 20, 20))  # fmt: skip
+            row.paste(img, (n * tile_width, 0))
+    return row
+
+
 def write_contact_sheet(render_dir: str | Path, path: str | Path, sequence=None, contact_labels=None, faces=None,
                         max_views: int = 4, max_frames: int = 4, tile_width: int = 256, spp: int = 16,
                         title: str = "") -> dict:  # fmt: skip
@@ -120,12 +159,13 @@ def write_contact_sheet(render_dir: str | Path, path: str | Path, sequence=None,
     head, label_w = 28, 70
     strip = None
     if sequence is not None and contact_labels is not None and faces is not None:
-        from dualhuman_builder.render.preview import render_strip
-
-        with tempfile.TemporaryDirectory(prefix="dualhuman-sheet-") as tmp:
-            render_strip(sequence, faces, Path(tmp) / "strip.png", frames=frames, highlight=list(contact_labels),
-                         size=(tw, round(tw * 1.2)), spp=spp)  # fmt: skip
-            strip = Image.open(Path(tmp) / "strip.png").convert("RGB")
+        # the contact row shows the grid's frames, but always the take's frame of most contact too
+        # (rendered or not: a short contact can fall between rendered frames)
+        row_frames = list(frames)
+        if counts.max() > 0 and int(np.argmax(counts)) not in row_frames:
+            peak = int(np.argmax(counts))
+            row_frames[int(np.argmin([abs(c - peak) for c in row_frames]))] = peak
+        strip = _contact_row(sequence, np.asarray(contact_labels), faces, row_frames, tw, spp)
     W = label_w + tw * len(frames)
     H = head + th * len(vsel) + (strip.height + 18 if strip is not None else 0) + 18
     sheet = Image.new("RGB", (W, H), (255, 255, 255))
@@ -140,10 +180,10 @@ def write_contact_sheet(render_dir: str | Path, path: str | Path, sequence=None,
             sheet.paste(tiles[r][c], (label_w + c * tw, head + r * th))
     y = head + th * len(vsel)
     if strip is not None:
-        draw.text((4, y + 4), "contacts (yellow), side view", fill=(0, 0, 0))
+        draw.text((4, y + 4), "contact vertices (yellow), close-up of the contact (whole pair when none)", fill=(0, 0, 0))
         sheet.paste(strip, (label_w, y + 18))
         y += strip.height + 18
-    draw.text((4, y + 3), "masks: actor 1 blue, actor 2 orange; keypoints: filled = visible, ring = hidden", fill=(60, 60, 60))
+    draw.text((4, y + 3), "masks: actor 1 orange, actor 2 blue; keypoints: filled = visible, ring = hidden", fill=(60, 60, 60))
     path = Path(path)
     sheet.save(path)
     return {"frames": frames, "views": [view_names[i] for i in vsel], "size": [W, H], "contact_row": strip is not None}
