@@ -53,7 +53,7 @@ class FitConfig:
     collision_iterations: int = 12
     #: while a window still has a frame deeper than ``collision_tolerance_m`` after a collision pass, it
     #: gets another with the weight x4, up to this many passes in all
-    collision_rounds: int = 3
+    collision_rounds: int = 6
     collision_tolerance_m: float = 0.002
     sigma_orientation_deg: float = 2.0
     sigma_tracker_m: float = 0.004
@@ -227,6 +227,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     pen_before = np.zeros(T)
     pen_share_before = np.zeros(T)
     collided_frames = 0
+    rounds_used = 0
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
@@ -299,6 +300,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 with torch.no_grad():
                     vs = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
                     left = collide.penetration(vs[0], vs[1])["max_depth_m"]
+                rounds_used = max(rounds_used, _round + 1)
                 if left.max() <= cfg.collision_tolerance_m:
                     break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
@@ -344,7 +346,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in acts])
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
-               "collision_frames": int(collided_frames)}  # fmt: skip
+               "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used)}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),
