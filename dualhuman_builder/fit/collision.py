@@ -136,43 +136,26 @@ def _init_warp() -> None:
 
 
 @wp.kernel
-def _closest_normal(
+def _closest(
     meshes: wp.array(dtype=wp.uint64),
     which: wp.array(dtype=wp.int32),
     points: wp.array(dtype=wp.vec3),
     max_dist: wp.array(dtype=wp.float32),
     start: wp.int32,
+    winding: wp.int32,
     sdist: wp.array(dtype=wp.float32),
     face: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),
 ):
+    """Closest point of ``points[start + tid]`` on its mesh within ``max_dist``, with the
+    pseudonormal sign, or the winding-number sign when ``winding`` is 1."""
     i = wp.tid() + start
     m = meshes[which[i]]
     p = points[i]
-    q = wp.mesh_query_point_sign_normal(m, p, max_dist[i])
-    face[i] = -1
-    if q.result:
-        c = wp.mesh_eval_position(m, q.face, q.u, q.v)
-        sdist[i] = q.sign * wp.length(p - c)
-        face[i] = q.face
-        bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
-
-
-@wp.kernel
-def _closest_winding(
-    meshes: wp.array(dtype=wp.uint64),
-    which: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec3),
-    max_dist: wp.array(dtype=wp.float32),
-    start: wp.int32,
-    sdist: wp.array(dtype=wp.float32),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid() + start
-    m = meshes[which[i]]
-    p = points[i]
-    q = wp.mesh_query_point_sign_winding_number(m, p, max_dist[i], 2.0, 0.5)
+    if winding != 0:
+        q = wp.mesh_query_point_sign_winding_number(m, p, max_dist[i], 2.0, 0.5)
+    else:
+        q = wp.mesh_query_point_sign_normal(m, p, max_dist[i])
     face[i] = -1
     if q.result:
         c = wp.mesh_eval_position(m, q.face, q.u, q.v)
@@ -452,7 +435,7 @@ class CollisionTerm:
         if N == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32)
         md = np.broadcast_to(np.asarray(max_dist, np.float32), (N,))
-        kern = _closest_winding if self.sign == "winding" else _closest_normal
+        winding = 1 if self.sign == "winding" else 0
         arrs = [
             wp.array(mesh_ids, dtype=wp.uint64, device="cpu"),
             wp.array(which.astype(np.int32), dtype=wp.int32, device="cpu"),
@@ -467,14 +450,14 @@ class CollisionTerm:
 
         def run(k):
             s, e = int(bounds[k]), int(bounds[k + 1])
-            wp.launch(kern, dim=e - s, inputs=[*arrs, s, sd, face, bary], device="cpu")
+            wp.launch(_closest, dim=e - s, inputs=[*arrs, s, winding, sd, face, bary], device="cpu")
 
         if n_chunks == 1:
             run(0)
         else:
-            if kern.key not in _loaded:  # load the module once, before any concurrent launch
-                wp.launch(kern, dim=1, inputs=[*arrs, 0, sd, face, bary], device="cpu")
-                _loaded.add(kern.key)
+            if _closest.key not in _loaded:  # load the module once, before any concurrent launch
+                wp.launch(_closest, dim=1, inputs=[*arrs, 0, winding, sd, face, bary], device="cpu")
+                _loaded.add(_closest.key)
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=self.threads - 1)
             futures = [self._executor.submit(run, k) for k in range(1, n_chunks)]

@@ -162,7 +162,9 @@ class _Actor:
         self.stance = torch.as_tensor(stance_mask(ankles, fps, ankle_h - sole_h, cfg), device=dev)
         self.joints = self.rig.model.joint22_index.to(dev)
 
-    def pose(self, delta, dtransl, sl: slice, vertices="soles"):
+    def pose(self, delta, dtransl, sl, vertices="soles"):
+        """Bones (and ``vertices``) of timeline frames ``sl`` (a slice or an index tensor) with the
+        corrections ``delta (n, 23, 3)`` rotation vectors and ``dtransl (n, 3)`` metres."""
         rot = roma.rotvec_to_rotmat(delta) @ self.target[sl]
         return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices)
 
@@ -282,11 +284,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 def cclosure(hit_t=hit_t, weight=weight, copt=copt):
                     copt.zero_grad()
                     e, _ = skeleton_energy()
-                    vs = []
-                    for k, a in enumerate(acts):
-                        d, tr = params[2 * k][hit_t], params[2 * k + 1][hit_t]
-                        rot = roma.rotvec_to_rotmat(d) @ a.target[sl][hit_t]
-                        vs.append(a.rig.pose(rot, a.transl0[sl][hit_t] + tr, True).vertices)
+                    vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
+                          for k, a in enumerate(acts)]  # fmt: skip
                     c = collide(vs[0], vs[1]).loss.sum()
                     e = e + weight * c
                     e.backward()

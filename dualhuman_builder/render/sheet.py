@@ -92,7 +92,8 @@ def _contact_row(sequence, labels: np.ndarray, faces: np.ndarray, frames: list[i
 
     from dualhuman_builder.render.preview import render_preview
 
-    verts = [a.vertices() for a in sequence.actors]
+    # only the shown frames: a whole take's meshes would cost minutes and 165 MB per 1,000 frames
+    verts = [a.compute(frames=np.asarray(frames))["vertices"] for a in sequence.actors]
     size = (tile_width, round(tile_width * 0.8))
     row = Image.new("RGB", (tile_width * len(frames), size[1]), (255, 255, 255))
     with tempfile.TemporaryDirectory(prefix="dualhuman-sheet-") as tmp:
@@ -101,13 +102,13 @@ def _contact_row(sequence, labels: np.ndarray, faces: np.ndarray, frames: list[i
             for i in range(2):
                 rgb = np.tile(np.asarray(MESH_COLOURS[i]), (verts[i].shape[1], 1))
                 rgb[labels[i, f]] = CONTACT_COLOUR
-                meshes.append((verts[i][f], faces, rgb))
-                touching.append(verts[i][f][labels[i, f]])
+                meshes.append((verts[i][n], faces, rgb))
+                touching.append(verts[i][n][labels[i, f]])
             pts = np.concatenate(touching)
             if len(pts):
                 bounds = (pts.min(0) - 0.15, pts.max(0) + 0.15)
             else:
-                allv = np.concatenate([v[f] for v in verts])
+                allv = np.concatenate([v[n] for v in verts])
                 bounds = (allv.min(0), allv.max(0))
             across = np.asarray(sequence.actors[1].transl[f] - sequence.actors[0].transl[f], dtype=float)
             azimuth = float(np.degrees(np.arctan2(-across[2], across[0])))  # across the actors' line, actor 1 on the left
