@@ -121,6 +121,35 @@ def test_speed_plays_n_times_faster_and_never_early():
     fast.close()
 
 
+def test_players_sharing_a_clock_keep_their_streams_aligned_when_one_thread_starts_late():
+    """Two devices of one studio: the second player's thread starts 150 ms late (a loaded
+    machine); with a shared clock its overdue packets go at once and the rest keep the common
+    schedule, so its stream is not shifted against the first one's."""
+    span_ns = 600_000_000
+    first = [Packet(k * span_ns // 30, b"a%02d" % k, "a") for k in range(31)]
+    second = [Packet(5_000_000 + k * span_ns // 30, b"b%02d" % k, "b") for k in range(31)]
+    rx = UdpReceiver()
+    with UdpPlayer(rx.address, speed=1.0) as pa, UdpPlayer(rx.address, speed=1.0) as pb:
+        pa.add(first)
+        pb.add(second)
+        UdpPlayer.share_clock([pa, pb], lead_s=0.02)
+        start = pa.epoch[0]
+        assert pb.epoch == pa.epoch and pa.epoch[1] == 0  # the earliest packet of either is time 0
+        pa.start()
+        time.sleep(0.15)
+        pb.start()
+        pa.join(), pb.join()
+    rx.wait_for(62)
+    arrival = {d: t - start for t, d in rx.got}
+    late = [arrival[p.data] - p.time_ns / 1e9 for p in second]
+    # packets due before the late start left in a burst right after it; later ones on schedule
+    assert all(x >= -0.002 for x in late)
+    on_time = [x for p, x in zip(second, late) if p.time_ns > 0.2e9]
+    assert len(on_time) >= 15 and max(on_time) < 0.02
+    assert max(late) > 0.1  # the burst was late
+    assert max(arrival[p.data] - p.time_ns / 1e9 for p in first) < 0.02
+
+
 def _read_all(read, n, timeout=10.0):
     got = bytearray()
     deadline = time.monotonic() + timeout

@@ -297,6 +297,11 @@ class Player(abc.ABC):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self.report: PlayReport | None = None
+        #: ``(perf_counter seconds, schedule ns)``: the wall instant at which schedule time
+        #: ``origin_ns`` is due. None: the play's own start and its first packet. Players that
+        #: stand for devices of one studio share one (see :meth:`share_clock`), so a thread that
+        #: starts late sends its overdue packets at once instead of shifting its whole stream.
+        self.epoch: tuple[float, int] | None = None
 
     def add(self, packets: Iterable[Packet]) -> Player:
         """Add a stream (or several, already merged); merged with the others in time order."""
@@ -318,9 +323,11 @@ class Player(abc.ABC):
         plan = plan_faults(packets, self.faults)
         log = FaultLog(lost=plan.lost, outage=plan.outage, duplicated=plan.duplicated, reordered=plan.reordered)
         report = self.report = PlayReport(packets=len(packets), faults=log)
-        t0 = packets[0].time_ns if packets else 0
         seed = self.faults.seed if self.faults else 0
-        start = time.perf_counter()
+        if self.epoch is not None:
+            start, t0 = self.epoch
+        else:
+            start, t0 = time.perf_counter(), (packets[0].time_ns if packets else 0)
         last_i, last_data = -1, None
         completed = True
         for i, t_ns in zip(plan.order, plan.send_time_ns):
@@ -356,6 +363,21 @@ class Player(abc.ABC):
         report.completed = completed and not self._stop.is_set()
         report.elapsed_s = time.perf_counter() - start
         return report
+
+    @staticmethod
+    def share_clock(players: Iterable[Player], lead_s: float = 0.05) -> None:
+        """Give ``players`` one schedule clock: schedule time 0 of the earliest packet among them
+        falls ``lead_s`` seconds from now on every player. Devices of one studio run on one
+        physical time; without this, each player's thread start (which varies by tens of ms on a
+        loaded machine) would offset its whole stream against the others'. Call before
+        :meth:`start`; packets must be timed on one clock (``clock="host"``)."""
+        players = list(players)
+        firsts = [p.packets[0].time_ns for p in players if p.packets]
+        if not firsts:
+            return
+        epoch = (time.perf_counter() + lead_s, min(firsts))
+        for p in players:
+            p.epoch = epoch
 
     def start(self) -> Player:
         """Play in a background thread."""

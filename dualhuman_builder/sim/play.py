@@ -115,6 +115,7 @@ def play_studio(studio: SimStudio, *, mvn: str | None = "127.0.0.1:9763", tracke
     except BaseException:
         play.close()
         raise
+    Player.share_clock(play.players.values())  # one physical time for every device of the studio
     for name, p in play.players.items():
         if log:
             rate = "as fast as possible" if math.isinf(speed) else f"{speed:g}x real time"
