@@ -829,6 +829,100 @@ def render(workspace: Path, take: str, views: int, size: int, spp: int, radius: 
             console.print(f"contact sheet: {sheet.artifacts.get('contact_sheet.png')}", highlight=False)
 
 
+# ---------------------------------------------------------------------------- annotate
+@main.group()
+def annotate():
+    """Interaction labels and descriptions: round-trip them through any annotation tool.
+
+    \b
+      dualhuman annotate vocabulary [WS]             the label names you may use
+      dualhuman annotate export WS labels.csv        every take and sequence, annotated or blank
+      dualhuman annotate import WS labels.csv        read them back (CSV or JSON Lines)
+
+    A label record: labels from the vocabulary (CHI3D's eight types and NTU-120's mutual actions,
+    extended by WS/labels.toml), actor and reactor for one-sided interactions, a symmetric flag,
+    several free-text descriptions, the annotator and the time. The export stores them per
+    sequence (text.json, with a multi-hot vector over labels.json).
+    """
+
+
+@annotate.command("vocabulary")
+@click.argument("workspace", required=False, type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print labels.json as the export writes it.")
+def annotate_vocabulary(workspace: Path | None, as_json: bool):
+    """List the interaction labels (the built-in vocabulary, plus WORKSPACE/labels.toml if given).
+
+    Example:  dualhuman annotate vocabulary WS
+    """
+    from dualhuman_builder.errors import WorkspaceError
+    from dualhuman_builder.export.labels import load_vocabulary
+
+    try:
+        vocab = load_vocabulary(workspace)
+    except ValueError as e:
+        raise WorkspaceError(str(e), path=workspace) from None
+    if as_json:
+        click.echo(json.dumps(vocab.as_dict(), indent=1))
+        return
+    for i, lab in enumerate(vocab.labels):
+        side = "one-sided" if lab.one_sided else "symmetric"
+        console.print(f"{i:3d}  {lab.name:<20} {side:<10} {lab.description}  [dim]({', '.join(lab.sources)})[/]",
+                      highlight=False, soft_wrap=True)  # fmt: skip
+
+
+@annotate.command("export")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("file", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default=None,
+              help="File format (default: from FILE's extension; JSON Lines on standard output).")
+@click.option("--no-blank", is_flag=True, help="Only stored annotations, no blank rows for unannotated takes.")
+def annotate_export(workspace: Path, file: Path | None, fmt: str | None, no_blank: bool):
+    """Write the annotations of WORKSPACE to FILE (.csv or .jsonl; standard output without FILE):
+    every stored annotation, and a blank row for each take and sequence that has none yet, to be
+    filled in and imported back.
+
+    CSV columns: take, sequence, labels (';'-separated), actor, reactor, symmetric, annotator,
+    annotated_at, text_1, text_2, text_3, ...
+
+    Example:  dualhuman annotate export WS labels.csv
+    """
+    from dualhuman_builder.export.annotate import export_annotations
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        text, n = export_annotations(ws, file, fmt, blank=not no_blank)
+    if file is None:
+        click.echo(text, nl=False)
+    else:
+        console.print(f"{n} row(s) written to {file}", highlight=False)
+
+
+@annotate.command("import")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--annotator", default=None, help="Annotator name for rows whose annotator column is empty.")
+@click.option("--skip-invalid", is_flag=True, help="Import the valid rows and list the invalid ones (default: import nothing).")
+def annotate_import(workspace: Path, file: Path, annotator: str | None, skip_invalid: bool):
+    """Read annotations from FILE (.csv or .jsonl, UTF-8) into WORKSPACE's catalog.
+
+    The whole file is checked first: takes and sequences exist, labels are in the vocabulary,
+    actor and reactor are actors of the take, the text is UTF-8. A row replaces the stored
+    annotation of the same take, sequence and annotator; blank rows are skipped. The next
+    `dualhuman export` carries the labels into the dataset.
+
+    Example:  dualhuman annotate import WS labels.csv --annotator alice
+    """
+    from dualhuman_builder.export.annotate import import_annotations
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = import_annotations(ws, file, annotator=annotator, skip_invalid=skip_invalid)
+    for line, msg in res["invalid"]:
+        console.print(f"[yellow]skipped[/] line {line}: {msg}", highlight=False)
+    console.print(f"{res['imported']} annotation(s) imported from {file} ({res['blank']} blank, "
+                  f"{len(res['invalid'])} invalid row(s) skipped)", highlight=False)  # fmt: skip
+
+
 # ---------------------------------------------------------------------------- export
 class _ExportGroup(click.Group):
     """`dualhuman export WS OUT` builds; `dualhuman export verify|shards ...` are subcommands."""

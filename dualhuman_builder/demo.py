@@ -53,6 +53,8 @@ DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
 #: The demo's simulated devices play this many times faster than real time while recorded.
 DEMO_CAPTURE_SPEED = 2.0
+#: Annotator name of the labels a generated scene comes with.
+SCENE_ANNOTATOR = "dualhuman-scene"
 #: The demo's render: four views of every 10th frame, small and quick on a CPU.
 DEMO_RENDER = {"views": 4, "size": 192, "spp": 8, "every": 10}
 
@@ -135,6 +137,13 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         params = {"actors": DEMO_ACTORS, "shapes": shapes, **DEMO_SCENE}
         res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params=params)
         _note(result, log, "scene", res)
+        if not ws.annotations(DEMO_TAKE):  # scene-generated sequences come labelled with their type and text
+            from dualhuman_builder.export.labels import Annotation, check_annotation, load_vocabulary
+            from dualhuman_builder.tracks import InteractionSequence
+
+            gt = InteractionSequence.load(ws.artifacts("scene", DEMO_TAKE, DEMO_SEQUENCE)["sequence.npz"])
+            ann = Annotation(DEMO_TAKE, DEMO_SEQUENCE, SCENE_ANNOTATOR, tuple(gt.labels), tuple(gt.text))
+            ws.annotate([check_annotation(ann, load_vocabulary(ws.root), ws.take(DEMO_TAKE).actors)])
 
         def devices(out):
             from dualhuman_builder.sim.scenes import Scene

@@ -94,6 +94,9 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     sheet = Image.open(out["contact_sheet.png"])
     assert sheet.size[0] > 4 * 200 and np.asarray(sheet.convert("L")).std() > 10
     assert verify_export(out["export"]) == []
+    text = json.loads((out["export"] / "sequences" / "DEMO" / "text.json").read_text())  # pre-labelled by the scene
+    assert text["labels"] == ["handshake"] and text["symmetric"] is True and sum(text["multi_hot"]) == 1
+    assert text["texts"] and text["annotations"][0]["annotator"] == "dualhuman-scene"
     mtimes = {p: p.stat().st_mtime_ns for p in out.values() if p.is_file()}
     second = run_demo(ws_path, log=logs.append)
     assert second.ran == [] and second.up_to_date == stages

@@ -151,7 +151,11 @@ def test_layout_manifest_schema_and_contents(exported, items, body_model):
     assert np.array_equal(cts["labels"], items[2].contacts["labels"]) and cts["distances"].dtype == np.float16
     assert json.loads((out / "sequences/s2/contact_events.json").read_text())[0]["min_distance_m"] is None
     text = json.loads((out / "sequences/s2/text.json").read_text(encoding="utf-8"))
-    assert text == {"labels": ["push"], "texts": [TEXT, "Two people, clip s2."], "roles": ["actor", "reactor"]}
+    vocab = json.loads((out / "labels.json").read_text())
+    assert vocab["size"] == len(vocab["labels"]) == 30 and manifest["vocabulary"] == {"file": "labels.json", "size": vocab["size"]}
+    push = next(e["index"] for e in vocab["labels"] if e["name"] == "push")
+    assert text == {"labels": ["push"], "multi_hot": [int(i == push) for i in range(vocab["size"])], "symmetric": False,
+                    "texts": [TEXT, "Two people, clip s2."], "roles": ["actor", "reactor"], "annotations": []}  # fmt: skip
     # splits 3:1, stats over the train features of both persons
     train = (out / "splits/train.txt").read_text().split()
     test = (out / "splits/test.txt").read_text().split()

@@ -2,7 +2,8 @@
 
 One exported sequence per take whose ``fit`` stage is complete: the fitted pair (``bodies.npz``),
 the ``contacts`` stage's labels when that stage is complete, the ``render`` stage's folder when it
-is, the take's sequences' labels and texts, and the take's actors as subjects. Takes without a fit
+is, the take's labels, texts and roles (its sequences' and annotations', checked against the
+workspace's vocabulary), and the take's actors as subjects. Takes without a fit
 are listed as left out (an error with ``strict=True``); what each exported sequence lacks is listed
 by :func:`~dualhuman_builder.export.layout.export_dataset` under ``incomplete``.
 """
@@ -19,13 +20,27 @@ def _done(ws, stage: str, take: str) -> bool:
     return (ws.stage_record(stage, take) or {}).get("status") == "done"
 
 
-def workspace_items(ws, takes: list[str] | None = None) -> tuple[list, list[str]]:
+def _vocabulary(ws):
+    from dualhuman_builder.export.labels import load_vocabulary
+
+    try:
+        return load_vocabulary(ws.root)
+    except ValueError as e:
+        raise WorkspaceError(str(e), path=ws.root) from None
+
+
+def workspace_items(ws, takes: list[str] | None = None, vocabulary=None) -> tuple[list, list[str]]:
     """``(items, left_out)``: an :class:`~dualhuman_builder.export.layout.ExportItem` per take of
-    ``takes`` (default: all) with a complete fit, and the names of those without one."""
+    ``takes`` (default: all) with a complete fit, and the names of those without one. Labels,
+    texts, roles and the symmetric flag come from the take's sequences and annotations
+    (:func:`~dualhuman_builder.export.annotate.take_labels`), checked against ``vocabulary``
+    (default: the workspace's, :func:`~dualhuman_builder.export.labels.load_vocabulary`)."""
     from dualhuman_builder.contacts.compute import ContactResult
+    from dualhuman_builder.export.annotate import take_labels
     from dualhuman_builder.export.layout import ExportItem
     from dualhuman_builder.tracks import InteractionSequence
 
+    vocabulary = vocabulary or _vocabulary(ws)
     known = ws.takes()
     names = list(takes) if takes else known
     unknown = [t for t in names if t not in known]
@@ -39,13 +54,17 @@ def workspace_items(ws, takes: list[str] | None = None) -> tuple[list, list[str]
         seq = InteractionSequence.load(ws.artifacts("fit", take)["bodies.npz"])
         contacts = ContactResult.load(ws.artifacts("contacts", take)["contacts.npz"]) if _done(ws, "contacts", take) else None
         render_dir = ws.artifact_dir("render", take) if _done(ws, "render", take) else None
-        labels, texts = [], []
-        for s in ws.sequences(take):
-            labels += [x for x in s.labels if x not in labels]
-            texts += [x for x in s.text if x not in texts]
+        try:
+            lab = take_labels(ws, take, vocabulary)
+        except ValueError as e:
+            raise WorkspaceError(f"take {take!r}: {e}", path=ws.root) from None
         info = ws.take(take)
         subjects = tuple(info.actors) if len(info.actors) == 2 else None
-        items.append(ExportItem(take, seq, subjects=subjects, labels=labels, texts=texts, contacts=contacts,
+        roles = None
+        if subjects is not None and lab["actor"] in subjects:
+            roles = ("actor", "reactor") if lab["actor"] == subjects[0] else ("reactor", "actor")
+        items.append(ExportItem(take, seq, subjects=subjects, labels=lab["labels"], texts=lab["texts"], roles=roles,
+                                symmetric=lab["symmetric"], annotations=lab["annotators"], contacts=contacts,
                                 render_dir=render_dir, meta={"take": take, "rig": info.rig}))  # fmt: skip
     return items, left_out
 
@@ -56,7 +75,8 @@ def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: 
     ``left_out``: takes without a fit)."""
     from dualhuman_builder.export.layout import export_dataset
 
-    items, left_out = workspace_items(ws, takes)
+    vocabulary = _vocabulary(ws)
+    items, left_out = workspace_items(ws, takes, vocabulary)
     if left_out:
         msg = f"takes without a complete fit, left out: {left_out}"
         if strict:
@@ -66,6 +86,6 @@ def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: 
         raise WorkspaceError("no take has a complete fit: nothing to export", path=ws.root,
                              fix="run `dualhuman fit WS --take T` first")  # fmt: skip
     manifest = export_dataset(items, out_dir, split_ratio=split_ratio, subject_disjoint=subject_disjoint, seed=seed,
-                              strict=strict, progress=log)  # fmt: skip
+                              strict=strict, progress=log, vocabulary=vocabulary)  # fmt: skip
     manifest["left_out"] = left_out
     return manifest

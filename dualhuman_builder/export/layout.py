@@ -16,6 +16,8 @@ Layout
                            P phenotype values, V vertices, ...), dtype, units, meaning; the 269
                            motion-feature slices (export/features.py FEATURE_SCHEMA)
       README.md            this dataset card, generated from the manifest
+      labels.json          the interaction vocabulary (export/vocabulary.toml + the project's own):
+                           {version, size K, labels: [{index, name, description, one_sided, sources}]}
       splits/train.txt     sequence ids, one per line, sorted (seeded split, 3:1 by default;
       splits/test.txt        optionally subject-disjoint: no subject in both)
       stats/mean.npy       (269,) float32 feature mean over the train split, both persons
@@ -35,7 +37,10 @@ Layout
         contact_events.json  region-level events [{region_a, region_b, start, end (exclusive),
                            contact_frames, peak_vertices, min_distance_m (null: deeper than the
                            band), ...}]
-        text.json          {"labels": [...], "texts": [...], "roles": [role a, role b] | null}, UTF-8
+        text.json          {"labels": [...], "multi_hot": [K ints 0/1 over labels.json], "symmetric":
+                           true | false | null, "texts": [...], "roles": ["actor" | "reactor", the
+                           other] for persons a, b | null, "annotations": [{annotator, annotated_at,
+                           sequence}]}, UTF-8
         cameras.json       the render's cameras (OpenCV K, world-to-camera R | t, metres)
         renders/           the render folder (hard-linked when on the same filesystem):
                            render.json, keypoints.npz, visibility.json,
@@ -74,6 +79,7 @@ import numpy as np
 
 from dualhuman_builder import __version__
 from dualhuman_builder.export.features import FEATURE_DIM, FEATURE_SCHEMA, feature_stats, motion_features
+from dualhuman_builder.export.labels import Vocabulary, load_vocabulary
 from dualhuman_builder.fileio import atomic_open, remove_partials, sha256_file
 from dualhuman_builder.tracks import InteractionSequence
 
@@ -84,6 +90,7 @@ STAGES = ("motion", "contacts", "text", "renders")
 SEQ_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,127}$")
 MANIFEST = "manifest.json"
 SEQUENCE_JSON = "sequence.json"
+LABELS_JSON = "labels.json"
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 #: Folders the export owns: files in them that the manifest does not list are removed on export
 #: and reported by verify.
@@ -99,7 +106,10 @@ class ExportItem:
     first dot), at most 128 characters. ``sequence``: the fitted pair, or None when the fit stage
     is missing (the item is then skipped). ``subjects``: the two performers' names (default: the
     tracks' ``actor`` names); ``labels``, ``texts``: interaction labels and descriptions (default:
-    the sequence's own), ``str`` or UTF-8 ``bytes``; ``roles``: optional two role names.
+    the sequence's own), ``str`` or UTF-8 ``bytes``; labels must be in the export's vocabulary.
+    ``roles``: optional two role names (``("actor", "reactor")`` or the reverse for a one-sided
+    interaction); ``symmetric``: True / False / None (None: derived from the labels' vocabulary
+    entries); ``annotations``: who annotated when (``[{annotator, annotated_at, sequence}]``).
     ``contacts``: None, or a dict (or a ``ContactResult``) with ``labels (2, T, V)`` bool,
     ``distances (2, T, V)`` float16 metres, ``frame_contact (T,)`` bool, ``events`` list of dicts.
     ``render_dir``: None or a render folder (``cameras.json``, ``keypoints.npz``,
@@ -113,6 +123,8 @@ class ExportItem:
     labels: list[str] = field(default_factory=list)
     texts: list[str | bytes] = field(default_factory=list)
     roles: tuple[str, str] | None = None
+    symmetric: bool | None = None
+    annotations: list[dict[str, Any]] = field(default_factory=list)
     contacts: Mapping[str, Any] | Any | None = None
     render_dir: str | Path | None = None
     meta: dict[str, Any] = field(default_factory=dict)
@@ -125,6 +137,8 @@ class _Prepared:
     labels: list[str]
     texts: list[str]
     roles: list[str] | None
+    symmetric: bool | None
+    multi_hot: list[int]
     contacts: dict[str, Any] | None
     render_files: list[tuple[str, Path]]  # (relative path in the sequence folder, source)
     problem: str | None  # reason to skip, found before computing anything
@@ -328,7 +342,7 @@ def _render_files(seq_id: str, render_dir) -> list[tuple[str, Path]]:
     return files
 
 
-def _prepare(item: ExportItem) -> _Prepared:
+def _prepare(item: ExportItem, vocabulary: Vocabulary) -> _Prepared:
     if not isinstance(item, ExportItem):
         raise ValueError(f"export items must be ExportItem, got {type(item).__name__}")
     sid = item.seq_id
@@ -347,6 +361,14 @@ def _prepare(item: ExportItem) -> _Prepared:
         roles = _decode_texts(sid, item.roles, "roles")
         if len(roles) != 2:
             raise ValueError(f"sequence {sid!r}: roles must name two roles, got {len(roles)}")
+    try:
+        labels = vocabulary.check(labels)
+    except ValueError as e:
+        raise ValueError(f"sequence {sid!r}: {e}") from None
+    symmetric = item.symmetric if item.symmetric is not None else vocabulary.symmetric(labels)
+    if item.symmetric is not None and not isinstance(item.symmetric, bool):
+        raise ValueError(f"sequence {sid!r}: symmetric must be True, False or None, got {item.symmetric!r}")
+    json_clean(item.annotations, f"sequence {sid!r} annotations")
     json_clean(item.meta, f"sequence {sid!r} meta")
     if seq is not None:
         json_clean(seq.meta, f"sequence {sid!r} sequence.meta")
@@ -366,7 +388,8 @@ def _prepare(item: ExportItem) -> _Prepared:
         if item.contacts is not None:
             contacts = _check_contacts(sid, item.contacts, seq.num_frames)
     files = _render_files(sid, item.render_dir) if item.render_dir is not None else []
-    return _Prepared(item, (str(subjects[0]), str(subjects[1])), labels, texts, roles, contacts, files, problem)
+    return _Prepared(item, (str(subjects[0]), str(subjects[1])), labels, texts, roles, symmetric,
+                     vocabulary.multi_hot(labels).tolist(), contacts, files, problem)  # fmt: skip
 
 
 def _fingerprint(p: _Prepared, fps: float) -> str:
@@ -378,7 +401,8 @@ def _fingerprint(p: _Prepared, fps: float) -> str:
         h.update(b"\0")
 
     seq = p.item.sequence
-    add([FORMAT_VERSION, __version__, fps, p.subjects, p.labels, p.texts, p.roles, json_clean(p.item.meta),
+    add([FORMAT_VERSION, __version__, fps, p.subjects, p.labels, p.multi_hot, p.symmetric, p.item.annotations, p.texts,
+         p.roles, json_clean(p.item.meta),
          json_clean(seq.meta), seq.take, list(seq.frame_range)])  # fmt: skip
     for track in seq.actors:
         add([track.model, track.model_version, list(track.bone_names), list(track.shape_names)])
@@ -452,7 +476,11 @@ def build_schema(body_model: Mapping[str, Any]) -> dict[str, Any]:
                  "C": "cameras of the render", "R": "rendered frames"},  # fmt: skip
         "arrays": arrays,
         "json": {
-            "sequences/{seq_id}/text.json": {"labels": "list[str]", "texts": "list[str]", "roles": "[str, str] | null"},
+            "sequences/{seq_id}/text.json": {"labels": "list[str] (names in labels.json)", "multi_hot": "list[int] (K)",
+                                             "symmetric": "bool | null", "texts": "list[str]",
+                                             "roles": "[str, str] | null (person a's, person b's)",
+                                             "annotations": "list of {annotator, annotated_at, sequence}"},
+            "labels.json": "{version, size, labels: [{index, name, description, one_sided, sources}]}",
             "sequences/{seq_id}/contact_events.json": "list of {region_a, region_b, start, end (exclusive), "
             "contact_frames, peak_vertices, min_distance_m (null: deeper than the band), start_s, end_s}",
             "sequences/{seq_id}/cameras.json": "{convention, cameras: [{name, width, height, K, R, t, ...}], ...}",
@@ -588,7 +616,8 @@ def _write_sequence(p: _Prepared, folder: Path, fps: float, fingerprint: str) ->
             "labels_packed": np.packbits(c["labels"], axis=2), "num_vertices": np.int64(c["labels"].shape[2]),
             "distances": c["distances"], "frame_contact": c["frame_contact"]})  # fmt: skip
         payload["contact_events.json"] = json_bytes(c["events"])
-    payload["text.json"] = json_bytes({"labels": p.labels, "texts": p.texts, "roles": p.roles})
+    payload["text.json"] = json_bytes({"labels": p.labels, "multi_hot": p.multi_hot, "symmetric": p.symmetric,
+                                       "texts": p.texts, "roles": p.roles, "annotations": p.item.annotations})  # fmt: skip
     files: dict[str, dict] = {}
     written = 0
     for rel, data in payload.items():
@@ -619,6 +648,7 @@ def _sequence_doc(p: _Prepared, seq: InteractionSequence, fps: float, files: dic
         "render_views": views,
         "num_texts": len(p.texts),
         "labels": p.labels,
+        "symmetric": p.symmetric,
         "meta": json_clean({**seq.meta, **p.item.meta}),
         "fingerprint": fingerprint,
         "files": dict(sorted(files.items())),
@@ -638,6 +668,7 @@ def export_dataset(
     strict: bool = False,
     progress: Callable[[str], None] | None = None,
     expect: Iterable[str] = STAGES,
+    vocabulary: Vocabulary | None = None,
 ) -> dict[str, Any]:
     """Export ``items`` into the folder layout of this module under ``out_dir``; returns the manifest.
 
@@ -646,8 +677,10 @@ def export_dataset(
     ``motion``, ``contacts``, ``text``, ``renders``); a sequence lacking one is exported with what
     it has and listed under ``incomplete``. A sequence without motion or with NaN motion is left out
     and listed under ``skipped``. ``strict=True`` turns both into a ValueError. ``progress`` gets one
-    line per sequence. Re-running completes a partial export and rewrites only what changed.
-    Errors (ValueError): duplicate or unsafe ``seq_id``, text that is not UTF-8, malformed contacts,
+    line per sequence. ``vocabulary``: the interaction labels (default: the built-in one,
+    :func:`~dualhuman_builder.export.labels.load_vocabulary`). Re-running completes a partial export and rewrites only what changed.
+    Errors (ValueError): duplicate or unsafe ``seq_id``, text that is not UTF-8, a label outside the
+    vocabulary, malformed contacts,
     a missing ``render_dir``, mixed fps or body models, an ``out_dir`` that is a non-empty folder
     but no export, nothing exportable.
     """
@@ -671,7 +704,8 @@ def export_dataset(
     if out.is_dir() and any(out.iterdir()) and not ((out / MANIFEST).exists() or (out / "sequences").is_dir()):
         raise ValueError(f"{out} is a non-empty folder that is not a dataset export; choose an empty or new folder")
 
-    prepared = [_prepare(it) for it in items]  # every input error surfaces before anything is written
+    vocabulary = vocabulary or load_vocabulary()
+    prepared = [_prepare(it, vocabulary) for it in items]  # every input error surfaces before anything is written
     skipped: dict[str, str] = {p.item.seq_id: p.problem for p in prepared if p.problem}
     good = [p for p in prepared if not p.problem]
     fps_set = sorted({p.item.sequence.fps for p in good})
@@ -756,6 +790,7 @@ def export_dataset(
     put("stats/std.npy", npy_bytes(std))
     schema = build_schema(body)
     put("schema.json", json_bytes(schema))
+    put(LABELS_JSON, json_bytes(vocabulary.as_dict()))
     for sid in sorted(docs):
         d = docs[sid]
         for rel, rec in d["files"].items():
@@ -776,6 +811,7 @@ def export_dataset(
         "world_frame": "right-handed, +Y up, floor y = 0; a body at identity faces +Z, its left towards +X",
         "persons": {"a": "actor 0", "b": "actor 1"},
         "feature_dim": FEATURE_DIM,
+        "vocabulary": {"file": LABELS_JSON, "size": len(vocabulary)},
         "split": {"ratio": float(split_ratio), "seed": int(seed), "subject_disjoint": bool(subject_disjoint),
                   "files": {"train": "splits/train.txt", "test": "splits/test.txt"}},  # fmt: skip
         "stats": {"mean": "stats/mean.npy", "std": "stats/std.npy", "over": "train features, both persons"},
@@ -791,7 +827,8 @@ def export_dataset(
         "expect": list(expect),
         "sequences": {sid: {"frames": docs[sid]["frames"], "subjects": docs[sid]["subjects"], "split": split_of[sid],
                             "has": docs[sid]["has"], "render_views": docs[sid]["render_views"],
-                            "num_texts": docs[sid]["num_texts"], "labels": docs[sid]["labels"]}
+                            "num_texts": docs[sid]["num_texts"], "labels": docs[sid]["labels"],
+                            "symmetric": docs[sid].get("symmetric")}
                       for sid in sorted(docs)},  # fmt: skip
         "incomplete": incomplete,
         "skipped": dict(sorted(skipped.items())),

@@ -5,7 +5,8 @@
 no unlisted files sit in the export's own folders; every array matches ``schema.json`` (names,
 shapes with the symbolic dims resolved per sequence, dtypes); motion arrays hold no NaN/inf and the
 stored features are those of the stored joints; contacts are consistent (vertex count, per-frame
-flags); the JSON files parse (text as UTF-8); the splits are disjoint, cover every sequence and
+flags); the JSON files parse (text as UTF-8); labels are in ``labels.json`` and each multi-hot
+vector matches its labels; the splits are disjoint, cover every sequence and
 agree with the manifest (and share no subject when the export says subject-disjoint); the feature
 statistics are finite; each sequence has every file the manifest promises. Nothing is unpickled:
 arrays are read with ``allow_pickle=False``.
@@ -20,7 +21,9 @@ from typing import Any
 import numpy as np
 
 from dualhuman_builder.export.features import FEATURE_DIM, motion_features
+from dualhuman_builder.export.labels import Vocabulary
 from dualhuman_builder.export.layout import (
+    LABELS_JSON,
     MANIFEST,
     OWN_FOLDERS,
     PERSONS,
@@ -120,13 +123,23 @@ def verify_export(out_dir: str | Path, check_features: bool = True) -> list[str]
     entries = schema.get("arrays", []) if isinstance(schema, dict) else []
     dims = schema.get("dims", {}) if isinstance(schema, dict) else {}
     fps = manifest.get("fps")
+    vocab = None
+    if "vocabulary" in manifest:
+        rel = manifest["vocabulary"].get("file", LABELS_JSON) if isinstance(manifest["vocabulary"], dict) else LABELS_JSON
+        doc = _load_json(out / rel, problems, rel) if _safe_rel(rel) else None
+        try:
+            vocab = Vocabulary.from_dict(doc) if doc is not None else None
+        except ValueError as e:
+            problems.append(f"{rel}: {e}")
+        if vocab is not None and manifest["vocabulary"].get("size") != len(vocab):
+            problems.append(f"{rel}: {len(vocab)} labels, manifest says {manifest['vocabulary'].get('size')}")
     for sid, info in sorted(sequences.items()):
         try:
             check_seq_id(sid)
         except ValueError as e:
             problems.append(str(e))
             continue
-        problems += _verify_sequence(out, sid, info, files, entries, dims, fps, check_features)
+        problems += _verify_sequence(out, sid, info, files, entries, dims, fps, check_features, vocab)
 
     # ---- splits
     split_files = manifest.get("split", {}).get("files", {"train": "splits/train.txt", "test": "splits/test.txt"})
@@ -185,7 +198,7 @@ def verify_export(out_dir: str | Path, check_features: bool = True) -> list[str]
 
 
 def _verify_sequence(out: Path, sid: str, info: dict[str, Any], files: dict, entries: list, dims: dict, fps,
-                     check_features: bool) -> list[str]:  # fmt: skip
+                     check_features: bool, vocab: Vocabulary | None = None) -> list[str]:  # fmt: skip
     problems: list[str] = []
     base = f"sequences/{sid}"
     has = info.get("has", {})
@@ -271,6 +284,12 @@ def _verify_sequence(out: Path, sid: str, info: dict[str, Any], files: dict, ent
                 problems.append(f"{base}/text.json: needs lists of strings 'labels' and 'texts'")
             elif bool(text["texts"]) != bool(has.get("text")):
                 problems.append(f"{base}/text.json: {len(text['texts'])} texts, manifest says has text = {has.get('text')}")
+            elif vocab is not None:
+                unknown = [x for x in text["labels"] if x not in vocab]
+                if unknown:
+                    problems.append(f"{base}/text.json: labels {unknown} are not in labels.json")
+                elif text.get("multi_hot") != vocab.multi_hot(text["labels"]).tolist():
+                    problems.append(f"{base}/text.json: multi_hot disagrees with its labels")
     if has.get("cameras") and f"{base}/cameras.json" in files:
         cams = _load_json(out / base / "cameras.json", problems, f"{base}/cameras.json")
         if cams is not None:

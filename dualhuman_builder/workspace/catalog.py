@@ -9,12 +9,18 @@ Tables (format version :data:`CATALOG_VERSION`):
 * ``takes`` — name, rig, start time, duration (s), per-source sample counts (JSON);
   ``take_files`` — the take's source files with SHA-256 and size; ``take_actors`` — who was in it.
 * ``sequences`` — named frame ranges ``[frame_start, frame_stop)`` of a take, labels and text.
+* ``annotations`` (version 2) — interaction labels of a take (``sequence_id`` NULL) or of one of its
+  sequences: labels (JSON list of vocabulary names, :mod:`dualhuman_builder.export.labels`), free-text
+  descriptions (JSON list), actor and reactor (actor names of the take; NULL for symmetric or unknown),
+  symmetric flag, annotator and time; one row per (take, sequence, annotator): re-importing replaces it.
 * ``stage_runs`` — one row per (take, sequence or none, stage): parameters hash and JSON, status
   (``running`` / ``done`` / ``failed``), artifact paths with sizes and SHA-256, a JSON summary the
   stage returned, start and end times, error text, and the pid and host of the process that ran it.
 
 Opening checks the file is a SQLite database, passes ``PRAGMA quick_check``, and was written by a
-format version this code reads, before anything is written.
+format version this code reads, before anything is written. A catalog of an older version is
+brought up to date (new tables only, in one transaction) the first time it is opened for writing;
+read-only opens leave it as it is.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from dualhuman_builder import __version__
 from dualhuman_builder.errors import FormatVersionError, WorkspaceError
 
 CATALOG_NAME = "catalog.sqlite"
-CATALOG_VERSION = 1
+CATALOG_VERSION = 2
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
 SCHEMA = """
@@ -104,6 +110,25 @@ CREATE TABLE stage_runs (
 );
 CREATE UNIQUE INDEX stage_runs_key ON stage_runs (take_id, IFNULL(sequence_id, 0), stage);
 """
+#: Statements that bring a catalog of version ``k`` to ``k + 1``.
+MIGRATIONS = {
+    1: """
+CREATE TABLE annotations (
+    id INTEGER PRIMARY KEY,
+    take_id INTEGER NOT NULL REFERENCES takes(id) ON DELETE CASCADE,
+    sequence_id INTEGER REFERENCES sequences(id) ON DELETE CASCADE,
+    annotator TEXT NOT NULL,
+    labels_json TEXT NOT NULL DEFAULT '[]',
+    texts_json TEXT NOT NULL DEFAULT '[]',
+    actor TEXT,
+    reactor TEXT,
+    symmetric INTEGER CHECK (symmetric IN (0, 1)),
+    annotated_at TEXT NOT NULL,
+    source TEXT
+);
+CREATE UNIQUE INDEX annotations_key ON annotations (take_id, IFNULL(sequence_id, 0), annotator);
+""",
+}
 
 
 def now_iso() -> str:
@@ -124,7 +149,7 @@ def create_catalog(path: Path) -> sqlite3.Connection:
     conn.execute("PRAGMA journal_mode = WAL")
     conn.execute("PRAGMA synchronous = NORMAL")
     with _transaction(conn):
-        for statement in SCHEMA.split(";"):
+        for statement in (SCHEMA + "".join(MIGRATIONS.values())).split(";"):
             if statement.strip():
                 conn.execute(statement)
         conn.executemany(
@@ -191,6 +216,7 @@ def open_catalog(path: Path, readonly: bool = False) -> sqlite3.Connection:
             return conn
         conn = _connect(f"file:{path}?mode=rw")
         conn.execute("PRAGMA synchronous = NORMAL")
+        _migrate(conn)
         return conn
     except sqlite3.DatabaseError as e:
         raise WorkspaceError(
@@ -198,6 +224,26 @@ def open_catalog(path: Path, readonly: bool = False) -> sqlite3.Connection:
             path=path,
             fix=f"restore {path.name} from a backup, or move it aside and run `dualhuman init {path.parent}`",
         ) from e
+
+
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Apply :data:`MIGRATIONS` from the catalog's version up to :data:`CATALOG_VERSION`, in one
+    transaction (a crash leaves the old version intact)."""
+
+    def version() -> int:
+        return int(conn.execute("SELECT value FROM meta WHERE key = 'format_version'").fetchone()[0])
+
+    if version() >= CATALOG_VERSION:
+        return
+    with _transaction(conn):
+        if version() >= CATALOG_VERSION:  # another process migrated it meanwhile
+            return
+        for k in range(version(), CATALOG_VERSION):
+            for statement in MIGRATIONS[k].split(";"):
+                if statement.strip():
+                    conn.execute(statement)
+        conn.execute("UPDATE meta SET value = ? WHERE key = 'format_version'", (str(CATALOG_VERSION),))
+        conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('migrated_at', ?)", (now_iso(),))
 
 
 def _validate(conn: sqlite3.Connection, path: Path) -> None:

@@ -322,6 +322,47 @@ class Workspace:
         rows = self.conn.execute("SELECT name FROM sequences WHERE take_id = ? ORDER BY name", (self._take_id(take),))
         return [self.sequence(take, r["name"]) for r in rows.fetchall()]
 
+    # ------------------------------------------------------------------ annotations
+    def annotate(self, annotations: Iterable) -> int:
+        """Store :class:`~dualhuman_builder.export.labels.Annotation` records, all or none (one
+        transaction); a record replaces the one of the same take, sequence and annotator. The
+        records must be checked already (:func:`~dualhuman_builder.export.labels.check_annotation`);
+        an unknown take or sequence is an error. Returns the number stored."""
+        self._require_writable()
+        rows = []
+        for a in annotations:
+            tid = self._take_id(a.take)
+            sid = self._sequence_id(a.take, a.sequence)
+            rows.append((tid, sid, a.annotator, json.dumps(list(a.labels)), json.dumps(list(a.texts), ensure_ascii=False),
+                         a.actor, a.reactor, None if a.symmetric is None else int(a.symmetric), a.annotated_at or now_iso(),
+                         a.source))  # fmt: skip
+        with transaction(self.conn):
+            for r in rows:
+                self.conn.execute("DELETE FROM annotations WHERE take_id = ? AND IFNULL(sequence_id, 0) = IFNULL(?, 0) "
+                                  "AND annotator = ?", r[:3])  # fmt: skip
+                self.conn.execute("INSERT INTO annotations (take_id, sequence_id, annotator, labels_json, texts_json, actor, "
+                                  "reactor, symmetric, annotated_at, source) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", r)  # fmt: skip
+        return len(rows)
+
+    def annotations(self, take: str | None = None) -> list:
+        """The stored annotations (of ``take``, or all), ordered by take, sequence (take-level
+        first), annotator. An old catalog not yet migrated (opened read-only) has none."""
+        from dualhuman_builder.export.labels import Annotation
+
+        if not self.conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'annotations'").fetchone():
+            return []
+        q = ("SELECT t.name AS take, s.name AS seq, a.* FROM annotations a JOIN takes t ON t.id = a.take_id "
+             "LEFT JOIN sequences s ON s.id = a.sequence_id")  # fmt: skip
+        args: tuple = ()
+        if take is not None:
+            q += " WHERE a.take_id = ?"
+            args = (self._take_id(take),)
+        rows = self.conn.execute(q + " ORDER BY t.name, IFNULL(s.name, ''), a.annotator", args).fetchall()
+        return [Annotation(r["take"], r["seq"], r["annotator"], tuple(json.loads(r["labels_json"])),
+                           tuple(json.loads(r["texts_json"])), r["actor"], r["reactor"],
+                           None if r["symmetric"] is None else bool(r["symmetric"]), r["annotated_at"], r["source"])
+                for r in rows]  # fmt: skip
+
     # ------------------------------------------------------------------ stages
     def artifact_dir(self, stage: str, take: str, sequence: str | None = None) -> Path:
         return self.root / "artifacts" / _check_name("take", take) / (sequence or TAKE_LEVEL) / stage
