@@ -938,9 +938,11 @@ def export():
     """The training-ready dataset: build it, verify it, shard it.
 
     \b
-      dualhuman export WS OUT            every fitted take of WS -> the dataset folder OUT
-      dualhuman export verify OUT        checksums, schema, splits, shapes, NaNs
-      dualhuman export shards OUT DIR    WebDataset tar shards of a split, for streaming
+      dualhuman export WS OUT                every fitted take of WS -> the dataset folder OUT
+      dualhuman export verify OUT            checksums, schema, splits, shapes, NaNs
+      dualhuman export shards OUT DIR        WebDataset tar shards of a split, for streaming
+      dualhuman export interhuman OUT DEST   InterGen's InterHuman layout (two persons, 30 fps)
+      dualhuman export humanml3d OUT DEST    HumanML3D's layout (one motion per person, 20 fps)
     """
 
 
@@ -1009,6 +1011,69 @@ def export_shards(out: Path, shard_dir: Path, split: str, max_mb: float):
 
     paths = write_shards(out, shard_dir, max_bytes=int(max_mb * 2**20), split=split)
     console.print(f"{len(paths)} shard(s) in {shard_dir}", highlight=False)
+
+
+def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) -> None:
+    from dualhuman_builder.export import convert
+
+    try:
+        doc = getattr(convert, f"to_{layout}")(out, dest, split=split, label_texts=label_texts)
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    c, unit = doc["counts"], "motions" if "motions" in doc else "sequences"
+    per = f" = {doc['motions']} motions" if "motions" in doc else ""
+    console.print(f"{layout}: {doc['sequences_converted']} sequence(s){per} ({c['train']} train, {c['test']} test {unit}), "
+                  f"{len(doc['skipped'])} skipped, {len(doc['texts_from_labels'])} captioned from labels -> {dest}",
+                  highlight=False, soft_wrap=True)  # fmt: skip
+
+
+_CONVERT_OPTIONS = [
+    click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path)),
+    click.argument("dest", type=click.Path(file_okay=False, path_type=Path)),
+    click.option("--split", type=click.Choice(["all", "train", "test"]), default="all", show_default=True,
+                 help="Convert only this split of the export."),
+    click.option("--label-texts/--no-label-texts", default=True, show_default=True,
+                 help="Caption a sequence without text from its labels ('two people interact: <label>.'); off: skip it."),
+]  # fmt: skip
+
+
+def _convert_options(f):
+    for deco in reversed(_CONVERT_OPTIONS):
+        f = deco(f)
+    return f
+
+
+@export.command("interhuman")
+@_convert_options
+def export_interhuman(out: Path, dest: Path, split: str, label_texts: bool):
+    """Convert the export OUT to InterGen's InterHuman layout in DEST (30 fps), so InterGen's
+    dataloader reads it unchanged (DATA_ROOT = DEST).
+
+    Writes motions_processed/person1|person2/<id>.npy (InterHuman's raw (T, 492) per-frame joints and
+    6D rotations, Z up, person a = person1), features/p1|p2/<id>.npy (the 262-dim features),
+    annots/<id>.txt (three or more sentences), train/val/test.txt (also under split/; val = test),
+    ignore_list.txt, global_mean/std.npy, and conversion.json (the per-sequence transform back to the
+    world frame, skipped sequences with reasons).
+
+    Example:  dualhuman export interhuman WS/export WS/interhuman
+    """
+    _convert("interhuman", out, dest, split, label_texts)
+
+
+@export.command("humanml3d")
+@_convert_options
+def export_humanml3d(out: Path, dest: Path, split: str, label_texts: bool):
+    """Convert the export OUT to HumanML3D's layout in DEST (20 fps, one motion per person: <id>_a,
+    <id>_b), for single-person text-to-motion code (T2M, MDM, ...).
+
+    Writes new_joint_vecs/<name>.npy (T-1, 263), new_joints/<name>.npy (T-1, 22, 3) canonical,
+    texts/<name>.txt (caption#tokens#0.0#0.0; tokens are lowercased words tagged OTHER, not spaCy's
+    lemmas and POS), Mean.npy/Std.npy over the train motions, train/val/test/all.txt (val = test),
+    and conversion.json.
+
+    Example:  dualhuman export humanml3d WS/export WS/humanml3d
+    """
+    _convert("humanml3d", out, dest, split, label_texts)
 
 
 if __name__ == "__main__":
