@@ -51,8 +51,10 @@ DEMO_SEQUENCE = "handshake"
 DEMO_SCENE = {"type": "handshake", "seed": 3, "fps": 30.0}
 DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
-#: The demo's simulated devices play this many times faster than real time while recorded.
-DEMO_CAPTURE_SPEED = 2.0
+#: The demo's simulated devices play this many times faster than real time while recorded. Real
+#: time: 2x is the most a 2-core machine records losslessly (benchmarks/bench_capture.py), and near
+#: that limit the send threads fall behind by milliseconds, which the clock sync then has to absorb.
+DEMO_CAPTURE_SPEED = 1.0
 #: Annotator name of the labels a generated scene comes with.
 SCENE_ANNOTATOR = "dualhuman-scene"
 #: The demo's render: four views of every 10th frame, small and quick on a CPU.
