@@ -236,11 +236,29 @@ class BodyTrack:
         return {k: np.concatenate(v) if v else np.zeros((0,), np.float32) for k, v in out.items()}
 
     def _cached(self, key: str) -> np.ndarray:
-        if key not in self._cache:
-            for k, v in self.compute().items():
-                v.setflags(write=False)
-                self._cache[k] = v
+        if key not in self._cache and key in ("joints", "bone_heads"):
+            self._store(self._kinematics())  # no skinning needed (the export asks for joints only)
+        if key not in self._cache:  # joints always come from the kinematics path, whatever ran first
+            self._store({k: v for k, v in self.compute().items() if k not in ("joints", "bone_heads")})
         return self._cache[key]
+
+    def _store(self, arrays: dict[str, np.ndarray]) -> None:
+        for k, v in arrays.items():
+            v.setflags(write=False)
+            self._cache[k] = v
+
+    def _kinematics(self, batch_size: int = 512) -> dict[str, np.ndarray]:
+        """``bone_heads (T, J, 3)`` and ``joints (T, 22, 3)`` float32 by forward kinematics only."""
+        import torch
+
+        model = self._model("cpu")
+        heads = []
+        with torch.no_grad():
+            for s0 in range(0, self.num_frames, batch_size):
+                sl = slice(s0, s0 + batch_size)
+                heads.append(model.bone_heads(self.pose[sl], self.shape, self.transl[sl]).cpu().numpy())
+        h = np.concatenate(heads).astype(np.float32, copy=False)
+        return {"bone_heads": h, "joints": np.ascontiguousarray(h[:, model.joint22_index.cpu().numpy()])}
 
     def vertices(self) -> np.ndarray:
         """``(T, V, 3)`` float32 mesh vertices, world metres (cached)."""

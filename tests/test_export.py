@@ -350,6 +350,12 @@ def test_loader_windows_values_and_mirroring(exported):
         assert np.array_equal(item["a"].numpy(), f["a.features"][st : st + L])
         assert np.array_equal(item["b"].numpy(), f["b.features"][st : st + L])
         assert item["text"] in (TEXT, f"Two people, clip {item['seq_id']}.") and not item["mirrored"]
+    for i in reversed(range(len(ds))):
+        ds[i]
+    assert sorted(ds._cache) == ["s0", "s1", "s2", "s3"]  # the default budget keeps the split: each file read once
+    tiny = MotionWindows(out, window=L, split="all", cache_mb=0)  # keeps only the sequence in use
+    for i in (0, len(tiny) - 1, 5):
+        assert np.array_equal(tiny[i]["b"].numpy(), ds[i]["b"].numpy()) and len(tiny._cache) == 1
     norm = MotionWindows(out, window=L, split="train", normalize=True)
     mean, std = np.load(out / "stats/mean.npy"), np.load(out / "stats/std.npy")
     it = norm[3]

@@ -76,3 +76,25 @@ def test_npz_never_unpickles(tmp_path):
         load_npz(tmp_path / "t.npz", "Thing", 1)
     with pytest.raises(TypeError, match="dtype object"):
         save_npz(tmp_path / "o.npz", "Thing", 1, {"o": np.array([object()], dtype=object)})
+
+
+def test_corrupt_deflate_streams_are_format_errors_not_zlib_errors(tmp_path):
+    """A flipped byte inside a compressed member fails in zlib (not zipfile): still a clear error."""
+    from dualhuman_builder.export.layout import read_npz, npz_bytes
+
+    good = npz_bytes({"x": np.sin(np.arange(4000.0)).astype(np.float32)})  # the export's compressed writer
+    save_npz(tmp_path / "c.npz", "Thing", 1, {"x": np.zeros(2)})
+    kinds = set()
+    for off in range(60, len(good) - 120, 7):
+        bad = bytearray(good)
+        bad[off] ^= 0xFF
+        try:
+            read_npz(bytes(bad))
+            kinds.add("read")
+        except ValueError as e:
+            assert "not a readable .npz" in str(e)
+            kinds.add("zlib" if "decompress" in str(e) else "other")
+        (tmp_path / "c.npz").write_bytes(bytes(bad))
+        with pytest.raises(FormatError, match="truncated or corrupt|no __meta__"):
+            load_npz(tmp_path / "c.npz", "Thing", 1)
+    assert "zlib" in kinds  # the case this test is about did occur

@@ -189,6 +189,30 @@ class BodyModel:
 
     __call__ = forward
 
+    def bone_heads(self, pose=None, shape=None, transl=None, batch_size: int | None = None) -> torch.Tensor:
+        """Bone heads ``(B, J, 3)`` (world metres, Y-up) of :meth:`forward` without skinning the
+        mesh: forward kinematics over the bone tree from the zero-pose heads of ``shape`` (one anny
+        call at batch 1). Same inputs as :meth:`forward` (one shape for the batch); equal to its
+        ``bone_heads`` to float precision (5e-7 m measured), ~4x cheaper at batch 64."""
+        B = batch_size or _batch_of(pose, transl, shape)
+        local = self._rotations(pose, B)
+        shape_t = self.shape_tensor(shape)
+        if shape_t.dim() == 2 and shape_t.shape[0] != 1:
+            raise BodyModelError("bone_heads takes one shape for the whole batch")
+        eye = torch.eye(4, dtype=self.dtype, device=self.device).expand(1, self.num_bones, 4, 4)
+        zero = self.anny(pose_parameters=eye, phenotype_kwargs=shape_t.reshape(1, -1))["bone_poses"][0]
+        h0 = zero[:, :3, 3] @ self._c.T  # (J, 3) Y-up, root at the origin
+        parents = self.bone_parents
+        edges = h0 - h0[np.maximum(parents, 0)]
+        rot = self.local_to_global(local)
+        heads: list = [None] * self.num_bones
+        root = torch.zeros(B, 3, dtype=self.dtype, device=self.device) if transl is None else self._tensor(transl).reshape(B, 3)
+        for level in self._levels:
+            for j in level:
+                pj = parents[j]
+                heads[j] = root if pj < 0 else heads[pj] + rot[:, pj] @ edges[j]
+        return torch.stack(heads, dim=1)
+
     def rest(self, shape=None) -> BodyOutput:
         """The rest pose (anny's A-pose) of one body, root at the origin: batch of 1."""
         return self.forward(None, shape, None, batch_size=1)

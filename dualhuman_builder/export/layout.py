@@ -205,20 +205,22 @@ def npy_bytes(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def read_npz(source: str | Path | bytes) -> dict[str, np.ndarray]:
-    """All arrays of a ``.npz`` file (or its bytes), read with ``allow_pickle=False``.
-    ValueError when it is not a readable ``.npz`` or holds object arrays."""
+def read_npz(source: str | Path | bytes, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of a ``.npz`` file (or its bytes), read with ``allow_pickle=False``: all of them,
+    or only ``keys`` (the others are not decompressed). ValueError when it is not a readable
+    ``.npz``, holds object arrays, or lacks one of ``keys``."""
     where = "npz bytes" if isinstance(source, (bytes, bytearray)) else str(source)
     try:
         with np.load(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source, allow_pickle=False) as z:
-            return {name: z[name] for name in z.files}
-    except (zipfile.BadZipFile, EOFError, ValueError, OSError, KeyError) as e:
+            return {name: z[name] for name in (z.files if keys is None else keys)}
+    except Exception as e:  # noqa: BLE001 - untrusted bytes: zipfile, zlib, and numpy's header parser (SyntaxError, TokenError) all raise
         raise ValueError(f"{where}: not a readable .npz without pickled objects ({e})") from e
 
 
-def load_motion(path: str | Path) -> dict[str, np.ndarray]:
-    """``motion.npz`` of a sequence: ``{"a.pose", "a.transl", "a.shape", "a.joints", "a.features", "b.*"}``."""
-    return read_npz(path)
+def load_motion(path: str | Path, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """``motion.npz`` of a sequence: ``{"a.pose", "a.transl", "a.shape", "a.joints", "a.features", "b.*"}``
+    (or only ``keys``, in their order)."""
+    return read_npz(path, keys)
 
 
 def load_contacts(path: str | Path) -> dict[str, np.ndarray]:
