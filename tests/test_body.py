@@ -101,6 +101,20 @@ def test_batched_forward_matches_single_and_is_differentiable(body_model):
         m.shape_tensor({"stature": 1.8})
 
 
+def test_kinematics_only_bone_heads_equal_the_skinned_forward(body_model):
+    torch.manual_seed(3)
+    pose = torch.randn(5, body_model.num_bones, 3) * 0.4
+    transl = torch.randn(5, 3)
+    shape = torch.rand(len(body_model.shape_names))
+    with torch.no_grad():
+        ref = body_model.forward(pose, shape, transl)
+        heads = body_model.bone_heads(pose, shape, transl)
+    assert heads.shape == (5, body_model.num_bones, 3)
+    assert (heads - ref.bone_heads).abs().max() < 1e-5 and (heads[:, 0] - transl).abs().max() < 1e-6
+    with pytest.raises(BodyModelError, match="one shape for the whole batch"):
+        body_model.bone_heads(pose, shape.expand(5, -1), transl)
+
+
 def test_every_mvn_segment_maps_to_a_bone(body_model):
     mapping = load_segment_mapping()
     assert tuple(mapping.segments) == MVN_SEGMENTS and len(MVN_SEGMENTS) == 23
