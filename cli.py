@@ -935,7 +935,7 @@ class _ExportGroup(click.Group):
 
 @main.group(cls=_ExportGroup)
 def export():
-    """The training-ready dataset: build it, verify it, shard it.
+    """The training-ready dataset: build it, verify it, shard it, convert it.
 
     \b
       dualhuman export WS OUT                every fitted take of WS -> the dataset folder OUT
