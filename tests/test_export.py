@@ -295,6 +295,9 @@ def test_shards_round_trip_and_reject_malicious_members(exported, tmp_path):
     assert len(paths) >= 2 and [p.name for p in paths][:2] == ["all-000000.tar", "all-000001.tar"]
     assert all(p.stat().st_size <= 400_000 for p in paths)
     samples = list(iter_shards(paths))
+    only = list(iter_shards(paths, members=("text.json",)))  # the others are skipped, not read
+    assert [set(x) for x in only] == [{"__key__", "__url__", "text.json"}] * len(samples)
+    assert [x["text.json"] for x in only] == [x["text.json"] for x in samples]
     assert [s["__key__"] for s in samples] == sorted(FRAMES)
     s2 = samples[2]
     assert s2["motion.npz"] == (out / "sequences/s2/motion.npz").read_bytes()

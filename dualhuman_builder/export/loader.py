@@ -39,7 +39,7 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from dualhuman_builder.export.features import FEATURE_DIM, mirror_features, mirror_text
-from dualhuman_builder.export.layout import load_motion, read_manifest
+from dualhuman_builder.export.layout import load_motion, read_manifest, read_npz
 from dualhuman_builder.export.shards import decode_sample, iter_shards
 
 #: Default per-process budget of cached motion features (both persons), MiB: a whole split of most
@@ -121,13 +121,13 @@ class _Augment:
 
 
 def _shard_sequences(paths: Iterable[Path]) -> Iterator[tuple[str, np.ndarray, np.ndarray, list[str]]]:
-    for sample in iter_shards(paths):
-        s = decode_sample({k: v for k, v in sample.items() if k in ("__key__", "__url__", "motion.npz", "text.json")})
-        if "motion.npz" not in s:
+    """``(key, features a, features b, texts)`` per sample; only those are read and decoded."""
+    for sample in iter_shards(paths, members=("motion.npz", "text.json")):
+        if "motion.npz" not in sample:
             raise ValueError(f"{sample['__url__']}: sample {sample['__key__']!r} has no motion.npz")
-        m = s["motion.npz"]
-        texts = s.get("text.json", {}).get("texts", [])
-        yield sample["__key__"], m["a.features"], m["b.features"], [str(t) for t in texts]
+        fa, fb = read_npz(sample["motion.npz"], keys=("a.features", "b.features")).values()
+        texts = decode_sample({k: v for k, v in sample.items() if k == "text.json"}).get("text.json", {}).get("texts", [])
+        yield sample["__key__"], fa, fb, [str(t) for t in texts]
 
 
 class MotionWindows(Dataset):

@@ -22,7 +22,7 @@ import io
 import json
 import tarfile
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterable, Iterator
+from typing import Any, Collection, Iterable, Iterator
 
 from dualhuman_builder.export.layout import FORMAT_VERSION, SEQUENCE_JSON, json_bytes, read_manifest, read_npz
 from dualhuman_builder.fileio import atomic_open
@@ -163,11 +163,13 @@ def _check_member(path, m: tarfile.TarInfo) -> tuple[str, str]:
     return key, ext
 
 
-def iter_shards(paths: Iterable[str | Path]) -> Iterator[dict[str, Any]]:
+def iter_shards(paths: Iterable[str | Path], members: Collection[str] | None = None) -> Iterator[dict[str, Any]]:
     """Samples of WebDataset tar shards, in order: ``{"__key__": key, "__url__": shard path,
-    ext: bytes, ...}``. Nothing is written to disk. ValueError for a member with an absolute path
-    or ``..``, a link or other non-regular member, a name that is not ``<key>.<ext>``, an extension
-    repeated within a sample, or a key whose members are not consecutive."""
+    ext: bytes, ...}``; with ``members`` (extensions such as ``"motion.npz"``), only those are read
+    (every member's name is still checked). Nothing is written to disk. ValueError for a member with
+    an absolute path or ``..``, a link or other non-regular member, a name that is not
+    ``<key>.<ext>``, an extension repeated within a sample, or a key whose members are not
+    consecutive."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
     for path in paths:
@@ -186,10 +188,12 @@ def iter_shards(paths: Iterable[str | Path]) -> Iterator[dict[str, Any]]:
                         if key in seen:
                             raise ValueError(f"{path}: the members of sample {key!r} are not consecutive")
                         seen.add(key)
-                        sample = {"__key__": key, "__url__": str(path)}
-                    if ext in sample:
+                        sample, exts = {"__key__": key, "__url__": str(path)}, set()
+                    if ext in exts:
                         raise ValueError(f"{path}: sample {key!r} has two {ext!r} members")
-                    sample[ext] = tf.extractfile(m).read()
+                    exts.add(ext)
+                    if members is None or ext in members:
+                        sample[ext] = tf.extractfile(m).read()
         except tarfile.TarError as e:
             raise ValueError(f"{path}: not a readable tar shard ({e})") from e
         if sample is not None:
