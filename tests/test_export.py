@@ -381,7 +381,15 @@ def test_loader_windows_values_and_mirroring(exported):
     flags = [half[i]["mirrored"] for i in range(len(half))]
     assert 0 < sum(flags) < len(flags) and flags == [half[i]["mirrored"] for i in range(len(half))]
     half.set_epoch(1)
-    assert flags != [half[i]["mirrored"] for i in range(len(half))]
+    flags1 = [half[i]["mirrored"] for i in range(len(half))]
+    assert flags != flags1
+    # set_epoch reaches DataLoader workers that persist across epochs (the epoch is in shared memory)
+    dl = torch.utils.data.DataLoader(half, batch_size=None, num_workers=2, persistent_workers=True)
+    half.set_epoch(0)
+    assert [it["mirrored"] for it in dl] == flags
+    half.set_epoch(1)
+    assert [it["mirrored"] for it in dl] == flags1
+    del dl
     with pytest.raises(ValueError, match="window must be a positive"):
         MotionWindows(out, window=0)
     with pytest.raises(ValueError, match="mirrored motion would not match the images"):

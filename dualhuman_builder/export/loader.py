@@ -21,8 +21,9 @@ Augmentation: with probability ``mirror_p`` an item is mirrored left/right:
 :func:`~dualhuman_builder.export.features.mirror_text` on the text. The choice of text (one of the
 sequence's texts, uniformly) and the mirroring draw from a generator seeded by
 ``(seed, epoch, index)``: deterministic whatever the number of workers; call :meth:`set_epoch` for
-fresh draws each epoch. ``normalize=True`` applies ``(x - mean) / std`` after mirroring, with the
-export's ``stats/`` (or ``stats=(mean, std)``).
+fresh draws each epoch (the epoch lives in shared memory, so it reaches workers kept alive with
+``persistent_workers=True`` too). ``normalize=True`` applies ``(x - mean) / std`` after
+mirroring, with the export's ``stats/`` (or ``stats=(mean, std)``).
 """
 
 from __future__ import annotations
@@ -94,12 +95,18 @@ class _Augment:
     """Mirroring, text choice and normalisation shared by both datasets."""
 
     def __init__(self, mirror_p: float, seed: int, normalize: bool, stats, stats_folder: Path | None):
-        self.mirror_p, self.seed, self.epoch = mirror_p, int(seed), 0
+        self.mirror_p, self.seed = mirror_p, int(seed)
+        # in shared memory, so that set_epoch reaches DataLoader workers that persist across epochs
+        self._epoch = torch.zeros(1, dtype=torch.int64).share_memory_()
         self.stats = _load_stats(stats, stats_folder) if normalize else None
 
     def set_epoch(self, epoch: int) -> None:
         """Use fresh (but reproducible) augmentation draws for ``epoch``."""
-        self.epoch = int(epoch)
+        self._epoch[0] = int(epoch)
+
+    @property
+    def epoch(self) -> int:
+        return int(self._epoch[0])
 
     def draws(self, key: int) -> tuple[float, float]:
         """Two uniform [0, 1) numbers from ``(seed, epoch, key)`` (a keyed hash: ~2 us, where a
