@@ -25,9 +25,8 @@ it would on a freshly loaded sequence (tracks cache them).
    shards (about ``--shards`` of them), against the **baseline**: a bare loop that ``numpy.load``\\ s
    ``a.features`` and ``b.features`` of each motion.npz in turn, copies out the same windows and
    stacks them into batches, no torch. Ratios are to the baseline run in the same process.
-   Experiments the library does not do, marked as such: persistent DataLoader workers (which
-   ``set_epoch`` would not reach), and the folder dataset's per-process LRU cache of sequences
-   (``loader._CACHE_SEQUENCES``) raised to the whole train split.
+   One row marked "(experiment)": the folder dataset with ``persistent_workers=True`` (its cache
+   then survives epochs; ``set_epoch`` reaches it through shared memory).
 
 ``--profile`` also prints the top functions (cProfile, cumulative) of one export (a) run and one
 shuffled 0-worker MotionWindows epoch. Writes ``benchmarks/results/export.json``.
@@ -303,16 +302,6 @@ def bench_loaders(folder: Path, shard_dir: Path, args) -> dict:
     rows["MotionWindows folder, 0 workers, shuffled"] = map_style(folder, 0, True)
     rows["MotionWindows folder, 2 workers, shuffled"] = map_style(folder, 2, True)
     rows["  (experiment) same, persistent_workers=True"] = map_style(folder, 2, True, persistent=True)
-    import dualhuman_builder.export.loader as loader_module
-
-    saved = getattr(loader_module, "_CACHE_SEQUENCES", None)
-    if saved is not None and saved < len(ids):  # the LRU cache holds fewer sequences than the split
-        loader_module._CACHE_SEQUENCES = len(ids)
-        try:
-            rows[f"  (experiment) cache {saved} -> {len(ids)} sequences, 0 workers"] = map_style(folder, 0, True)
-            rows[f"  (experiment) cache {saved} -> {len(ids)} sequences, 2 workers"] = map_style(folder, 2, True)
-        finally:
-            loader_module._CACHE_SEQUENCES = saved
     rows["MotionWindows shards (in memory), 0 workers, shuffled"] = map_style(shards, 0, True)
     rows["MotionWindows shards (in memory), 2 workers, shuffled"] = map_style(shards, 2, True)
     rows["ShardWindows, 0 workers"] = streaming(0)

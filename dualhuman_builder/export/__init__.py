@@ -1,3 +1,5 @@
-"""Export stage: the training-ready dataset (folder layout with manifest and schema, 269-dim motion
-features, contacts, text and labels, splits, WebDataset shards, loaders, converters to
-InterHuman and HumanML3D layouts). Arrives with the export issue."""
+"""Export stage: the training-ready dataset. ``layout`` (folder layout, manifest, schema, splits),
+``collect`` (a workspace's fitted takes -> export items), ``features`` (269-dim motion features and
+their inverse), ``interhuman`` (262-dim InterGen features), ``labels`` / ``annotate`` (interaction
+vocabulary, annotations in and out), ``verify``, ``shards`` (WebDataset tars), ``loader`` (PyTorch
+datasets), ``convert`` (InterHuman and HumanML3D folder layouts)."""

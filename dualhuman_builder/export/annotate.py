@@ -27,6 +27,7 @@ sequence that has none yet: the template to fill in.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -190,7 +191,7 @@ def import_annotations(ws, path: str | Path, annotator: str | None = None, skip_
         except (ValueError, WorkspaceError) as e:
             invalid.append([line, e.message if isinstance(e, WorkspaceError) else str(e)])
             continue
-        good.append(Annotation(**{**a.__dict__, "annotated_at": a.annotated_at or stamp}))
+        good.append(dataclasses.replace(a, annotated_at=a.annotated_at or stamp))
     if invalid and not skip_invalid:
         listed = "; ".join(f"line {n}: {m}" for n, m in invalid[:_MAX_LISTED])
         more = f" (and {len(invalid) - _MAX_LISTED} more)" if len(invalid) > _MAX_LISTED else ""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import difflib
 import re
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping
@@ -158,7 +159,7 @@ def load_vocabulary(workspace_root: str | Path | None = None) -> Vocabulary:
             known.add(lab.name)
             labels.append(lab)
         origins.append(str(extra))
-    dupes = sorted({n for n in (lab.name for lab in labels) if sum(x.name == n for x in labels) > 1})
+    dupes = sorted(n for n, c in Counter(lab.name for lab in labels).items() if c > 1)
     if dupes:
         raise ValueError(f"vocabulary defines {dupes} more than once")
     return Vocabulary(tuple(labels), tuple(origins))

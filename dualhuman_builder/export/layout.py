@@ -367,9 +367,9 @@ def _prepare(item: ExportItem, vocabulary: Vocabulary) -> _Prepared:
         labels = vocabulary.check(labels)
     except ValueError as e:
         raise ValueError(f"sequence {sid!r}: {e}") from None
-    symmetric = item.symmetric if item.symmetric is not None else vocabulary.symmetric(labels)
     if item.symmetric is not None and not isinstance(item.symmetric, bool):
         raise ValueError(f"sequence {sid!r}: symmetric must be True, False or None, got {item.symmetric!r}")
+    symmetric = item.symmetric if item.symmetric is not None else vocabulary.symmetric(labels)
     json_clean(item.annotations, f"sequence {sid!r} annotations")
     json_clean(item.meta, f"sequence {sid!r} meta")
     if seq is not None:
