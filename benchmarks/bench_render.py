@@ -25,6 +25,7 @@ by CPU time of the process (all threads; steadier when other processes share the
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import platform
 import statistics
@@ -92,7 +93,7 @@ def bare_loop(renderer, verts) -> tuple[float, float]:
     return n / (time.perf_counter() - t), (time.process_time() - c) / n
 
 
-def compare(renderer, seq, verts, cams, spp, variant, repeats: int) -> tuple[list, list, dict]:
+def compare(renderer, seq, verts, cams, spp, variant, repeats: int, workers: int | None = None) -> tuple[list, list, dict]:
     """Alternating runs of the bare loop and of render_sequence (so that load from other
     processes hits both alike), after a warm-up of each; returns both lists of
     ``(images/s, CPU seconds per image)``."""
@@ -104,8 +105,10 @@ def compare(renderer, seq, verts, cams, spp, variant, repeats: int) -> tuple[lis
         bare_loop(renderer, [v[:1] for v in verts])  # warm-up: JIT compilation
         render_sequence(sub_sequence(seq, [0]), Path(tmp) / "warm", cams, spp=spp, variant=variant, log=quiet)
         for r in range(repeats):
+            gc.collect()  # the previous run's renderer is released before, not during, a timed run
             bare.append(bare_loop(renderer, verts))
-            doc = render_sequence(seq, Path(tmp) / f"run{r}", cams, spp=spp, variant=variant, log=quiet)
+            gc.collect()
+            doc = render_sequence(seq, Path(tmp) / f"run{r}", cams, spp=spp, variant=variant, log=quiet, workers=workers)
             full.append((doc["images_per_s"], doc["cpu_seconds"] / doc["images"]))
     return bare, full, doc
 
@@ -129,6 +132,117 @@ def encode_ms(size: int, repeats: int = 5) -> dict:
                 ts.append(time.perf_counter() - t)
             out[name] = round(statistics.median(ts) * 1e3, 2)
     return out
+
+
+def breakdown(renderer, seq, repeats: int = 3) -> dict:
+    """Median milliseconds per image of each step the pipeline's main thread runs in order: body
+    evaluation (per frame, divided by the views), ``set_frame``, the RGB render (image fetched),
+    the depth/mask pass, the keypoint annotation of both actors. The encoders run on the pool."""
+    from dualhuman_builder.render.annotations import annotate_view
+    from dualhuman_builder.render.stage import body_device
+
+    cams, dev = renderer.cameras, body_device(renderer.variant)
+    steps: dict[str, list] = {"body": [], "set_frame": [], "rgb": [], "depth_mask": [], "annotate": []}
+    for _ in range(repeats):
+        for f in range(seq.num_frames):
+            t = time.perf_counter()
+            bodies = [a.compute(frames=np.array([f]), device=dev) for a in seq.actors]
+            steps["body"].append((time.perf_counter() - t) / len(cams))
+            t = time.perf_counter()
+            renderer.set_frame(bodies[0]["vertices"][0], bodies[1]["vertices"][0])
+            steps["set_frame"].append((time.perf_counter() - t) / len(cams))
+            pj = np.stack([b["joints"][0] for b in bodies])
+            pc = np.stack([b["coco"][0] for b in bodies])
+            for i, cam in enumerate(cams):
+                t = time.perf_counter()
+                renderer.render_rgb(i, seed=i)
+                t1 = time.perf_counter()
+                depth, mask = renderer.render_depth_mask(i)
+                t2 = time.perf_counter()
+                annotate_view(cam, pj, depth, mask)
+                annotate_view(cam, pc, depth, mask)
+                t3 = time.perf_counter()
+                steps["rgb"].append(t1 - t)
+                steps["depth_mask"].append(t2 - t1)
+                steps["annotate"].append(t3 - t2)
+    return {k: round(statistics.median(v) * 1e3, 2) for k, v in steps.items()} | {"body_device": dev}
+
+
+def profile_pipeline(seq, cams, spp, variant, workers) -> None:
+    """cProfile of one render_sequence run (the main thread: rendering, annotation, waiting for the
+    encoders), top functions by own time."""
+    import cProfile
+    import pstats
+
+    from dualhuman_builder.render.stage import render_sequence
+
+    with tempfile.TemporaryDirectory(prefix="bench-render-prof-") as tmp:
+        prof = cProfile.Profile()
+        prof.enable()
+        render_sequence(seq, Path(tmp) / "p", cams, spp=spp, variant=variant, log=lambda s: None, workers=workers)
+        prof.disable()
+    pstats.Stats(prof).sort_stats("tottime").print_stats(18)
+
+
+def diagnose(seq, cams, spp, variant, workers, repeats: int) -> None:
+    """Pipeline images/s as is, with a 0.5 ms GIL switch interval (threads waiting for the GIL
+    get it sooner), and with the PNG/EXR writers replaced by no-ops (what encoding costs the
+    main thread): medians of ``repeats``."""
+    from dualhuman_builder.render import stage
+
+    def run():
+        with tempfile.TemporaryDirectory(prefix="bench-render-diag-") as tmp:
+            return [stage.render_sequence(seq, Path(tmp) / f"d{r}", cams, spp=spp, variant=variant, log=lambda s: None,
+                                          workers=workers)["images_per_s"] for r in range(repeats)]  # fmt: skip
+
+    print(f"diagnose, pipeline images/s: as is {statistics.median(run()):.2f}", end="", flush=True)
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(0.0005)
+    try:
+        print(f", switch interval 0.5 ms {statistics.median(run()):.2f}", end="", flush=True)
+    finally:
+        sys.setswitchinterval(old)
+    saved = stage.write_rgb_png, stage.write_depth_exr, stage.write_mask_png
+    stage.write_rgb_png = stage.write_depth_exr = stage.write_mask_png = lambda *a, **k: None
+    try:
+        print(f", writers skipped {statistics.median(run()):.2f}")
+    finally:
+        stage.write_rgb_png, stage.write_depth_exr, stage.write_mask_png = saved
+    # where one pipeline run's main thread goes: each step timed inside render_sequence
+    from dualhuman_builder.render.renderer import SequenceRenderer
+    from dualhuman_builder.tracks import BodyTrack
+
+    times: dict[str, list] = {}
+    targets = [(SequenceRenderer, n) for n in ("set_frame", "render_rgb", "render_depth_mask")]
+    targets += [(BodyTrack, "compute"), (stage, "annotate_view"), (stage, "_write_npz")]
+    originals = [(obj, name, getattr(obj, name)) for obj, name in targets]
+
+    def timed(name, fn):
+        def wrapper(*a, **k):
+            t = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                times.setdefault(name, []).append(time.perf_counter() - t)
+        return wrapper
+
+    for obj, name, fn in originals:
+        setattr(obj, name, timed(name, fn))
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench-render-diag-") as tmp:
+            t = time.perf_counter()
+            doc = stage.render_sequence(seq, Path(tmp) / "i", cams, spp=spp, variant=variant, log=lambda s: None,
+                                        workers=workers)  # fmt: skip
+            wall = time.perf_counter() - t
+    finally:
+        for obj, name, fn in originals:
+            setattr(obj, name, fn)
+    n = doc["images"]
+    print(f"instrumented run: {doc['images_per_s']:.2f} images/s ({1e3 * doc['seconds'] / n:.1f} ms/image; "
+          f"{wall:.2f} s with the scene build)")
+    for name, ts in times.items():
+        print(f"  {name:18s} calls {len(ts):4d}  total ms/image {1e3 * sum(ts) / n:6.2f}  first {1e3 * ts[0]:8.1f} ms  "
+              f"median {1e3 * statistics.median(ts):7.2f} ms")
 
 
 def memory_check(seq, frames: int, size: int, spp: int, variant) -> dict:
@@ -174,6 +288,10 @@ def main(argv=None):
     ap.add_argument("--sequence", type=Path, default=None, help="an InteractionSequence .npz instead of the hug scene")
     ap.add_argument("--memory-frames", type=int, default=1000, help="0 skips the memory check")
     ap.add_argument("--memory-size", type=int, default=64)
+    ap.add_argument("--workers", type=int, default=None, help="encoder threads (default: the pipeline's, min(8, CPUs))")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="also time the pipeline with a 0.5 ms GIL switch interval and with the file encoders skipped")
+    ap.add_argument("--profile", action="store_true", help="also print where one pipeline run's main thread spends its time")
     ap.add_argument("--json", type=Path, default=None, help="default benchmarks/results/render_<variant>_<size>.json")
     args = ap.parse_args(argv)
 
@@ -202,11 +320,15 @@ def main(argv=None):
     print(f"scene build (once per sequence): {build_s:.2f} s")
     res = [a.compute(frames=np.arange(sub.num_frames)) for a in sub.actors]
     bare_runs, full_runs, doc = compare(renderer, sub, [res[0]["vertices"], res[1]["vertices"]], cams, spp, args.variant,
-                                        args.repeats)  # fmt: skip
-    del renderer
+                                        args.repeats, args.workers)  # fmt: skip
     bare, full = statistics.median(r[0] for r in bare_runs), statistics.median(r[0] for r in full_runs)
     bare_cpu, full_cpu = statistics.median(r[1] for r in bare_runs), statistics.median(r[1] for r in full_runs)
     enc = encode_ms(args.size)
+    steps = breakdown(renderer, sub)
+    if args.profile:
+        profile_pipeline(sub, cams, spp, args.variant, args.workers)
+    if args.diagnose:
+        diagnose(sub, cams, spp, args.variant, args.workers, args.repeats)
     ratio = full / bare
     ratio_cpu = bare_cpu / full_cpu
     rows = [("bare mi.render loop (set_frame + render)", bare, bare_cpu), ("full pipeline (render_sequence)", full, full_cpu)]
@@ -216,12 +338,14 @@ def main(argv=None):
     print(f"pipeline / bare: {ratio:.3f} by wall time, {ratio_cpu:.3f} by CPU time (goal >= 0.8)")
     print(f"  runs (images/s): bare {[round(x[0], 3) for x in bare_runs]}, pipeline {[round(x[0], 3) for x in full_runs]}")
     print("encoding one view on one thread, ms: " + ", ".join(f"{k} {v}" for k, v in enc.items()))
+    print("main thread per image, ms: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
+    del renderer
     result = {"variant": variant, "mitsuba": doc.get("mitsuba"), "size": args.size, "spp": spp, "views": args.views,
               "frames": args.frames, "repeats": args.repeats, "template": doc.get("template"), "scene_build_s": round(build_s, 2),
               "bare_images_per_s": round(bare, 3), "pipeline_images_per_s": round(full, 3), "ratio": round(ratio, 3),
               "bare_cpu_ms_per_image": round(1000 * bare_cpu, 1), "pipeline_cpu_ms_per_image": round(1000 * full_cpu, 1),
               "ratio_cpu": round(ratio_cpu, 3), "bare_runs": bare_runs, "pipeline_runs": full_runs,
-              "encode_ms": enc, "machine": platform.machine()}  # fmt: skip
+              "encode_ms": enc, "main_thread_ms": steps, "machine": platform.machine()}  # fmt: skip
     if args.memory_frames:
         mem = memory_check(seq, args.memory_frames, args.memory_size, spp, args.variant)
         print(f"memory over {mem['frames']} frames at {mem['size']}x{mem['size']}, 1 view ({mem['seconds']} s, "

@@ -287,6 +287,16 @@ def _raise_disk_full(e: OSError, out: Path, complete: int, total: int):
                       fix="free some space and run the render again: it resumes after the last complete frame") from e  # fmt: skip
 
 
+def body_device(variant: str) -> str:
+    """Where the body model runs during a render: ``"cuda"`` when Mitsuba renders on the GPU
+    (``cuda_*`` variants) and torch sees one, else ``"cpu"``."""
+    if not str(variant).startswith("cuda"):
+        return "cpu"
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def _render_frames(renderer: SequenceRenderer, seq, todo: list[int], out: Path, progress: Path, before_write,
                    workers: int | None, log, tolerance_m: float) -> int:  # fmt: skip
     """Render ``todo`` frames; returns the number of images rendered. Raises the first write error."""
@@ -296,6 +306,7 @@ def _render_frames(renderer: SequenceRenderer, seq, todo: list[int], out: Path, 
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render-encode")
     pending: deque = deque()
     n_images, next_report = 0, 0.1
+    device = body_device(renderer.variant)
     t0 = time.perf_counter()
 
     def finish(item):
@@ -307,7 +318,7 @@ def _render_frames(renderer: SequenceRenderer, seq, todo: list[int], out: Path, 
     try:
         for start in range(0, len(todo), BODY_CHUNK):
             chunk = todo[start : start + BODY_CHUNK]
-            bodies = [a.compute(frames=np.asarray(chunk)) for a in seq.actors]
+            bodies = [a.compute(frames=np.asarray(chunk), device=device) for a in seq.actors]
             for n, f in enumerate(chunk):
                 renderer.set_frame(bodies[0]["vertices"][n], bodies[1]["vertices"][n])
                 pj = np.stack([b["joints"][n] for b in bodies])
@@ -414,5 +425,5 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
     return res
 
 
-__all__ = ["PROGRESS_DIR", "read_depth_exr", "render_sequence", "ring_target", "run_render", "select_frames",
+__all__ = ["PROGRESS_DIR", "body_device", "read_depth_exr", "render_sequence", "ring_target", "run_render", "select_frames",
            "stage_cameras", "write_depth_exr", "write_mask_png", "write_rgb_png"]
