@@ -36,6 +36,27 @@ from dualhuman_builder.body.mapping import DEFAULT_MAPPING_PATH, MVN_SEGMENTS, S
 from dualhuman_builder.errors import RigError
 from dualhuman_builder.paths import RIGS_DIR
 
+#: Where the capture protocol straps a VIVE tracker on each MVN segment: the tracker's origin in
+#: the segment's frame (x forward, y left, z up at the T-pose; metres), on the body surface — belt
+#: at the back of the pelvis, top of the head, back of each wrist (towards the forearm), instep in
+#: front of each ankle. The sync stage uses them as the prior of the mount translations (which
+#: makes an actor's heading solvable from the tracker constellation while the actor stands still);
+#: the simulated trackers are strapped there (plus a centimetre or so).
+TRACKER_SITES: dict[str, tuple[float, float, float]] = {
+    "Pelvis": (-0.11, 0.0, 0.02), "Head": (-0.04, 0.0, 0.16),
+    "LeftHand": (0.0, -0.03, 0.035), "RightHand": (0.0, 0.03, 0.035),
+    "LeftFoot": (0.06, 0.0, 0.03), "RightFoot": (0.06, 0.0, 0.03),
+}  # fmt: skip
+
+#: Site on a segment without an entry in :data:`TRACKER_SITES`: 5 cm off the origin, up.
+GENERIC_TRACKER_SITE = (0.0, 0.0, 0.05)
+
+
+def tracker_site(segment: str) -> tuple[float, float, float]:
+    """The capture protocol's tracker site on MVN ``segment`` (metres, segment frame)."""
+    return TRACKER_SITES.get(segment, GENERIC_TRACKER_SITE)
+
+
 #: URL schemes of capture sources (handlers live in :mod:`dualhuman_builder.capture`).
 SOURCE_SCHEMES = ("mvn+udp", "xbus", "mti+can", "vive+udp", "vive+usb", "sim")
 

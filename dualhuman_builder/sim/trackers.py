@@ -3,7 +3,7 @@ mounting offsets, occasional tracking loss, and a clock of their own.
 
 Model (:class:`TrackerErrorModel`), for a tracker on segment ``s`` with mounting rotation ``M`` and
 translation ``m`` (the tracker's frame and origin in the segment frame, drawn per run around a
-nominal site on the body surface, :data:`NOMINAL_MOUNTS`):
+nominal site on the body surface, :data:`~dualhuman_builder.rig.TRACKER_SITES`):
 
 * true pose ``R_tr = R_seg M``, ``p_tr = p_seg + R_seg m`` (world, Y-up), with its velocity and
   angular velocity (world frame) from the ground-truth splines;
@@ -55,24 +55,13 @@ from dualhuman_builder.capture.samples import TrackerSample
 from dualhuman_builder.sim.imu import freeze_arrays
 from dualhuman_builder.sim.kinematics import DeviceClock, KinematicSpline, as_spline
 from dualhuman_builder.sim.suit import random_rotations
+from dualhuman_builder.rig import tracker_site
 from dualhuman_builder.tracks import SkeletonTrack
 
 #: Default tracker sites per actor: serial suffix -> MVN segment (the issue's pelvis, head, wrists
 #: and ankles: the hand and foot segment origins are the wrist and ankle joints).
 DEFAULT_SITES = {"PELVIS": "Pelvis", "HEAD": "Head", "LHAND": "LeftHand", "RHAND": "RightHand",
                  "LFOOT": "LeftFoot", "RFOOT": "RightFoot"}  # fmt: skip
-
-#: Nominal tracker origin in its segment's frame (x forward, y left, z up at the T-pose; metres):
-#: on the body surface — belt at the back of the pelvis, top of the head, back of each wrist
-#: (towards the forearm), instep in front of each ankle.
-NOMINAL_MOUNTS: dict[str, tuple[float, float, float]] = {
-    "Pelvis": (-0.11, 0.0, 0.02), "Head": (-0.04, 0.0, 0.16),
-    "LeftHand": (0.0, -0.03, 0.035), "RightHand": (0.0, 0.03, 0.035),
-    "LeftFoot": (0.06, 0.0, 0.03), "RightFoot": (0.06, 0.0, 0.03),
-}  # fmt: skip
-
-#: Nominal mount on a segment without an entry in :data:`NOMINAL_MOUNTS`: 5 cm off the origin, up.
-GENERIC_MOUNT = (0.0, 0.0, 0.05)
 
 #: The tracker system's default clock against the scene (and the default suit) clock.
 DEFAULT_TRACKER_CLOCK = DeviceClock(offset_s=0.25, drift_ppm=30.0, latency_s=0.004, jitter_s=0.001)
@@ -246,7 +235,7 @@ def simulate_trackers(gt: SkeletonTrack | KinematicSpline, sites: dict[str, str]
     for i, (serial, seg) in enumerate(zip(serials, seg_idx)):
         streams = np.random.SeedSequence([int(seed), zlib.crc32(serial.encode()), 0x71BE]).spawn(4)
         r_mount, r_noise, r_loss, r_host = (np.random.default_rng(s) for s in streams)
-        nominal = np.asarray(NOMINAL_MOUNTS.get(segments[i], GENERIC_MOUNT))
+        nominal = np.asarray(tracker_site(segments[i]))
         mount_t[i] = nominal + r_mount.normal(0.0, errors.mount_translation_sigma_m, 3)
         m_rot = random_rotations(r_mount, 1, errors.mount_rotation_deg)[0]
         mount_q[i] = m_rot.as_quat()

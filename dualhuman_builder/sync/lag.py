@@ -120,6 +120,44 @@ def angular_speed(times_ns, quats_xyzw, valid=None, smooth_s: float = 0.04) -> t
     return mid, np.linalg.norm(w, axis=1)
 
 
+def linear_speed(times_ns, positions, valid=None, smooth_s: float = 0.04) -> tuple[np.ndarray, np.ndarray]:
+    """Speed (m/s) of a moving point from consecutive positions, for the lag of a tracker whose
+    segment translates but hardly turns (its angular speed carries no signal).
+
+    ``times_ns (N,)`` strictly increasing; ``positions (N, 3)`` m in any fixed world frame (the
+    speed does not depend on it); ``valid (N,)`` bool or None. Velocities of consecutive valid
+    pairs, stamped at the interval midpoints, smoothed by a zero-phase Gaussian of ``smooth_s``
+    seconds before the norm (as :func:`angular_speed`). A tracker and the origin of its segment
+    differ by the lever arm's ``w x m`` (a few cm/s), not by a delay. Returns ``(t_ns, speed)``.
+    """
+    t = _check_times("times_ns", times_ns)
+    p = np.asarray(positions, dtype=np.float64)
+    n = t.shape[0]
+    if p.shape != (n, 3):
+        raise ValueError(f"positions must have shape ({n}, 3) to match times_ns, got {p.shape}")
+    v = np.ones(n, dtype=bool) if valid is None else np.asarray(valid)
+    if v.shape != (n,) or v.dtype != bool:
+        raise ValueError(f"valid must be a bool array of shape ({n},), got {v.dtype} {v.shape}")
+    if not (smooth_s >= 0 and math.isfinite(smooth_s)):
+        raise ValueError(f"smooth_s must be finite and >= 0, got {smooth_s}")
+    if n < 2:
+        raise ValueError(f"need at least 2 samples for a speed, got {n}")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("times_ns must increase strictly")
+    if not np.all(np.isfinite(p[v])):
+        raise ValueError("positions has non-finite values at valid samples")
+    k = np.flatnonzero(v[:-1] & v[1:])
+    tf = t.astype(np.float64)
+    dt_ns = tf[k + 1] - tf[k]
+    mid = tf[k] + 0.5 * dt_ns
+    if k.size == 0:
+        return mid, np.zeros(0)
+    vel = (p[k + 1] - p[k]) / (dt_ns * 1e-9)[:, None]
+    if smooth_s > 0:
+        vel = _gauss_smooth(mid, vel, dt_ns, smooth_s * 1e9)
+    return mid, np.linalg.norm(vel, axis=1)
+
+
 def _relative_rotvec(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     """Rotation vectors ``(M, 3)`` of ``q0^-1 q1`` (body frame of ``q0``) for xyzw quaternions."""
     q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
@@ -200,8 +238,8 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float(a @ b) / den if den > 0 else -1.0
 
 
-def estimate_lag(t_a_ns, s_a, t_b_ns, s_b, max_lag_s: float = 0.1) -> LagEstimate:
-    """Lag of stream b behind stream a from their angular speeds.
+def estimate_lag(t_a_ns, s_a, t_b_ns, s_b, max_lag_s: float = 0.1, min_motion: float = _MIN_MOTION_RAD_S) -> LagEstimate:
+    """Lag of stream b behind stream a from their angular (or linear) speeds.
 
     ``t_a_ns (Na,)``, ``t_b_ns (Nb,)``: strictly increasing sample times, ns (float or int, as
     :func:`angular_speed` returns them); ``s_a``, ``s_b``: speeds (rad/s) at those times. The rates
@@ -215,8 +253,8 @@ def estimate_lag(t_a_ns, s_a, t_b_ns, s_b, max_lag_s: float = 0.1) -> LagEstimat
     Returns a :class:`LagEstimate` with ``s_a(t) ≈ s_b(t + lag_ns)``: b's timestamps are late by
     ``lag_ns`` (subtract it from b's times to align).
 
-    Raises ``ValueError`` if the overlap is shorter than 2 s, a stream hardly moves ("not enough
-    motion to estimate the lag"), the best correlation is below 0.5, or the peak lies at the edge
+    Raises ``ValueError`` if the overlap is shorter than 2 s, a stream hardly moves (speed std
+    below ``min_motion``, rad/s or m/s: "not enough motion to estimate the lag"), the best correlation is below 0.5, or the peak lies at the edge
     of ``±max_lag_s``.
     """
     ta, tb = _check_times("t_a_ns", t_a_ns), _check_times("t_b_ns", t_b_ns)
@@ -247,9 +285,9 @@ def estimate_lag(t_a_ns, s_a, t_b_ns, s_b, max_lag_s: float = 0.1) -> LagEstimat
     B, mb = _grid_values(tb, sb, g)
     std_a = float(np.std(A[ma])) if ma.any() else 0.0
     std_b = float(np.std(B[mb])) if mb.any() else 0.0
-    if min(std_a, std_b) < _MIN_MOTION_RAD_S:
-        raise ValueError(f"not enough motion to estimate the lag (angular-speed std a={std_a:.4f}, "
-                         f"b={std_b:.4f} rad/s; need >= {_MIN_MOTION_RAD_S})")  # fmt: skip
+    if min(std_a, std_b) < min_motion:
+        raise ValueError(f"not enough motion to estimate the lag (speed std a={std_a:.4f}, "
+                         f"b={std_b:.4f}; need >= {min_motion})")  # fmt: skip
     max_shift = max(1, round(max_lag_s * 1e9 / _GRID_NS))
     max_shift = min(max_shift, g.shape[0] // 4)
     r = _ncc_lags(A, ma, B, mb, max_shift)

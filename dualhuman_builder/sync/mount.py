@@ -22,7 +22,7 @@ suit poses into the tracker world and tracker poses back onto their segments.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import solveh_banded
@@ -34,8 +34,16 @@ _MIN_SAMPLES = 10
 _ROT_FLOOR_RAD = math.radians(2.0)
 _TRANS_FLOOR_M = 0.02
 _OUTLIER_FACTOR = 6.0
-#: Prior std of a mount translation (m): the "tiny ridge" for segments that hardly rotate.
+#: Prior std of a mount translation (m) when no tracker sites are given: the "tiny ridge" for
+#: segments that hardly rotate.
 _MOUNT_PRIOR_M = 1.0
+#: Prior std per axis (m) of a mount translation around its site, when sites are given.
+SITE_PRIOR_M = 0.02
+#: Heading-offset search (module docstring): a coarse grid of +-_SCAN_RANGE_DEG, then a parabola
+#: through the best grid point's neighbours at +-_SCAN_FINE_DEG.
+_SCAN_RANGE_DEG = 20.0
+_SCAN_STEP_DEG = 2.0
+_SCAN_FINE_DEG = 0.5
 #: Block length (s) used to account for correlated residuals in the uncertainties.
 _BLOCK_S = 1.0
 
@@ -52,7 +60,9 @@ class MountCalibration:
     (RMS angle of ``(Y R_seg M)^T R_tr``), ``translation_rms_m (K,)`` (RMS norm of the position
     residual); 1-sigma uncertainties of the mounts ``rotation_std_deg (K,)`` and
     ``translation_std_m (K,)`` (norms: sqrt of the covariance trace, inflated for residuals
-    correlated over ~1 s). ``outliers (T, K)``: valid samples rejected (origin jumps, rotation or
+    correlated over ~1 s; with tracker sites they include ``heading_std_deg``). With sites,
+    ``heading_offset_deg`` is the constant heading correction the constellation search applied and
+    ``heading_std_deg`` its 1-sigma (both 0 without sites). ``outliers (T, K)``: valid samples rejected (origin jumps, rotation or
     position residual above max(6 x median, 2 deg / 2 cm)). ``calibrated (K,)``: False where a
     tracker had fewer than 10 usable samples; its entries are NaN.
     """
@@ -71,6 +81,8 @@ class MountCalibration:
     heading_knots_rad: np.ndarray
     drift_knots_s: np.ndarray
     drift_knots_m: np.ndarray
+    heading_offset_deg: np.ndarray = field(default_factory=lambda: np.asarray(0.0))
+    heading_std_deg: np.ndarray = field(default_factory=lambda: np.asarray(0.0))
 
     def __post_init__(self):
         for name in self.__dataclass_fields__:
@@ -150,6 +162,8 @@ class MountCalibration:
             "heading_knots_rad": self.heading_knots_rad.tolist(),
             "drift_knots_s": self.drift_knots_s.tolist(),
             "drift_knots_m": self.drift_knots_m.tolist(),
+            "heading_offset_deg": float(self.heading_offset_deg),
+            "heading_std_deg": float(self.heading_std_deg) if np.isfinite(self.heading_std_deg) else None,
         }
 
 
@@ -342,7 +356,7 @@ def _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid):
 
 def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_spacing_s: float = 1.0,
                      drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = 0.05 / math.sqrt(60.0),
-                     rounds: int = 4) -> MountCalibration:  # fmt: skip
+                     rounds: int = 4, sites=None, site_prior_m: float = SITE_PRIOR_M) -> MountCalibration:  # fmt: skip
     """Estimate tracker mounts, the suit's heading and its position drift (model in the module
     docstring).
 
@@ -361,6 +375,18 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     repeated once if new outliers appeared. Samples at exactly the origin with ``valid`` True
     (trackers that lost tracking) are outliers from the start. A weak prior (``m ~ N(0, 1 m^2)``)
     keeps a segment that hardly rotates solvable, with a large ``translation_std_m``.
+
+    ``sites (K, 3)`` (m, segment frame; optional): where each tracker is strapped on its segment
+    (the capture protocol's site, e.g. :data:`~dualhuman_builder.rig.TRACKER_SITES`). Orientations alone cannot tell the
+    heading from a yaw shared by all mounts while the segments do not turn (an actor standing
+    still): then the tracker constellation decides. With sites, ``m_k ~ N(site_k, site_prior_m^2)``
+    per axis, and a constant heading offset is searched (a 2-degree grid over +-20 degrees, then a
+    parabola) minimising the negative log-likelihood of the orientation and position residuals
+    plus that prior, with the mounts and drift re-solved at each offset; residuals are counted
+    as one independent observation per ~1 s (they are correlated over that time), so a
+    well-turning actor is decided by its data and a still one by its constellation. The offset's
+    1-sigma (from the parabola's curvature) is ``heading_std_deg``, added in quadrature to every
+    ``rotation_std_deg``.
 
     Returns a :class:`MountCalibration`. A tracker with fewer than 10 usable samples gets NaN
     entries and ``calibrated[k] = False``. Raises ``ValueError`` on malformed input (shapes, NaN
@@ -390,6 +416,16 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     dk = _Knots(float(t[0]), float(t[-1]), drift_knot_spacing_s)
     dj, du = dk.locate(t)
 
+    obs_per_sample = min(1.0, dt / _BLOCK_S) if dt > 0 else 1.0  # ~one independent observation per second
+    if sites is None:
+        m0, m_prec = np.zeros((K, 3)), 1.0 / _MOUNT_PRIOR_M**2
+    else:
+        m0 = np.asarray(sites, dtype=np.float64)
+        if m0.shape != (K, 3) or not np.all(np.isfinite(m0)):
+            raise ValueError(f"sites must be finite with shape ({K}, 3), got {m0.shape}")
+        if not (site_prior_m > 0 and math.isfinite(site_prior_m)):
+            raise ValueError(f"site_prior_m must be positive and finite, got {site_prior_m}")
+        m_prec = 1.0 / (site_prior_m**2 * obs_per_sample)
     psi_knots = np.full(hk.n, _init_heading(Rs, Rt, use.astype(np.float64)))
     rot_out = np.zeros_like(valid)
     trans_out = np.zeros_like(valid)
@@ -424,7 +460,7 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         for _ in range(4):
             inl = use & ~rot_out & ~trans_out
             w = inl * huber / sigma[None] ** 2
-            m, d_knots, cov_m = _solve_translation(dk, dj, du, G, y, w, drift_rate_m_per_sqrt_s)
+            m, d_knots, cov_m = _solve_translation(dk, dj, du, G, y, w, drift_rate_m_per_sqrt_s, m0, m_prec)
             d_t = d_knots[dj] * (1 - du)[:, None] + d_knots[dj + 1] * du[:, None]
             e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
             en = np.linalg.norm(e, axis=-1)
@@ -440,6 +476,16 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
             break
 
     inl = use & ~rot_out & ~trans_out
+    heading_std = 0.0
+    offset = 0.0
+    if sites is not None:
+        problem = _HeadingProblem(Rs, Rt, p_seg, p_trk, valid, inl, huber / sigma[None] ** 2, dk, dj, du,
+                                  drift_rate_m_per_sqrt_s, m0, m_prec, obs_per_sample)  # fmt: skip
+        offset, heading_std = problem.search(psi)
+        psi_knots = psi_knots + offset
+        psi = psi + offset
+        G, M, m, d_knots, cov_m, e, en = problem.solve(psi)
+        d_t = d_knots[dj] * (1 - du)[:, None] + d_knots[dj + 1] * du[:, None]
     counts = inl.sum(axis=0)
     calibrated = counts >= _MIN_SAMPLES
     ang, rv = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
@@ -450,7 +496,8 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     for k in np.flatnonzero(calibrated):
         sel = inl[:, k]
         rot_rms[k] = math.degrees(math.sqrt(float(np.mean(ang[sel, k] ** 2))))
-        rot_std[k] = math.degrees(math.sqrt(max(float(np.trace(_mean_cov(rv[sel, k], t[sel]))), 0.0)))
+        rot_std[k] = math.hypot(math.degrees(math.sqrt(max(float(np.trace(_mean_cov(rv[sel, k], t[sel]))), 0.0))),
+                                heading_std)  # fmt: skip
         tr_rms[k] = math.sqrt(float(np.mean(en[sel, k] ** 2)))
         ek = e[sel, k]
         white = np.atleast_2d(np.cov(ek, rowvar=False)) / ek.shape[0]
@@ -465,15 +512,75 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         rotation_rms_deg=rot_rms, translation_rms_m=tr_rms, rotation_std_deg=rot_std, translation_std_m=tr_std,
         outliers=valid & ~inl, calibrated=calibrated, heading_knots_s=hk.t.copy(), heading_knots_rad=psi_knots.copy(),
         drift_knots_s=dk.t.copy(), drift_knots_m=d_knots.copy(),
+        heading_offset_deg=np.asarray(math.degrees(offset)), heading_std_deg=np.asarray(heading_std),
     )  # fmt: skip
 
 
-def _solve_translation(knots: _Knots, j, u, G, y, w, rate):
+class _HeadingProblem:
+    """The mounts and drift re-solved for a given heading trajectory, and the negative
+    log-likelihood of the result, for :func:`calibrate_mounts`' heading-offset search. Inlier set
+    and per-sample position weights (``w_pos (T, K)``, 1/m^2) are those of the main solve; each
+    sample counts ``obs_per_sample`` of an independent observation."""
+
+    def __init__(self, Rs, Rt, p_seg, p_trk, valid, inl, w_pos, dk, dj, du, rate, m0, m_prec, obs_per_sample):
+        self.Rs, self.Rt, self.inl, self.dk, self.dj, self.du = Rs, Rt, inl, dk, dj, du
+        self.p_seg = np.where(valid[..., None], p_seg, 0.0)
+        self.p_trk = np.where(valid[..., None], p_trk, 0.0)
+        self.w_pos = np.where(inl, w_pos, 0.0)
+        self.rate, self.m0, self.m_prec, self.scale = rate, m0, m_prec, obs_per_sample
+        self.inl_f = inl.astype(np.float64)
+        self.sig_rot = None
+
+    def solve(self, psi):
+        """``(G, M, m, d_knots, cov_m, e, |e|)`` for heading ``psi (T,)``: ``G = Y R_seg``, mounts
+        by the closed form and the translation solve, position residuals ``e (T, K, 3)``."""
+        Yt = _yaw_matrices(psi)
+        G = Yt[:, None] @ self.Rs
+        M, _ = _project_so3(np.einsum("tk,tkji,tkjl->kil", self.inl_f, G, self.Rt, optimize=True))
+        y = self.p_trk - np.einsum("tij,tkj->tki", Yt, self.p_seg)
+        m, d_knots, cov_m = _solve_translation(self.dk, self.dj, self.du, G, y, self.w_pos, self.rate, self.m0,
+                                               self.m_prec)  # fmt: skip
+        d_t = d_knots[self.dj] * (1 - self.du)[:, None] + d_knots[self.dj + 1] * self.du[:, None]
+        e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
+        return G, M, m, d_knots, cov_m, e, np.linalg.norm(e, axis=-1)
+
+    def nll(self, psi) -> float:
+        """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
+        (per-tracker robust scale, fixed at the first call), position residuals, drift random walk,
+        mount-site prior."""
+        G, M, m, d_knots, _, _, en = self.solve(psi)
+        ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)
+        if self.sig_rot is None:
+            self.sig_rot = np.array([max(1.4826 * float(np.median(ang[self.inl[:, k], k])), 1e-4)
+                                     if self.inl[:, k].any() else 1.0 for k in range(ang.shape[1])])  # fmt: skip
+        rot = float(np.sum(self.inl_f * (ang / self.sig_rot[None]) ** 2))
+        pos = float(np.sum(self.w_pos * en**2))
+        walk = float(np.sum(np.diff(d_knots, axis=0) ** 2)) / (self.rate**2 * self.dk.step)
+        prior = self.m_prec * float(np.sum((m - self.m0) ** 2))
+        return 0.5 * (self.scale * (rot + pos + walk) + self.scale * prior)
+
+    def search(self, psi) -> tuple[float, float]:
+        """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`."""
+        step, fine = math.radians(_SCAN_STEP_DEG), math.radians(_SCAN_FINE_DEG)
+        grid = np.arange(-_SCAN_RANGE_DEG, _SCAN_RANGE_DEG + 1e-9, _SCAN_STEP_DEG)
+        costs = np.array([self.nll(psi + math.radians(g)) for g in grid])
+        best = math.radians(float(grid[int(np.argmin(costs))]))
+        x = best + np.array([-step, -fine, 0.0, fine, step])
+        f = np.array([self.nll(psi + v) for v in x])
+        a, b, _ = np.polyfit(x - best, f, 2)
+        if a <= 0:  # flat or concave: keep the best point; no curvature, no information
+            return float(x[int(np.argmin(f))]), float("inf")
+        off = best + float(np.clip(-b / (2 * a), -step, step))
+        return off, math.degrees(1.0 / math.sqrt(2.0 * a))
+
+
+def _solve_translation(knots: _Knots, j, u, G, y, w, rate, prior_mean: np.ndarray, prior_precision: float):
     """Weighted least squares for ``m (K, 3)`` and drift knots ``(J, 3)`` in
     ``y_tk ≈ d(t) + G_tk m_k`` (weights ``w (T, K)`` in 1/m^2) with a random-walk prior on the
-    knots (increment std ``rate * sqrt(step)``) and ``m ~ N(0, 1 m^2)``. Returns ``m``, knots
-    and the covariance ``(K, 3, 3)`` of ``m``. The drift block is banded (same for each axis);
-    ``m`` comes from its Schur complement."""
+    knots (increment std ``rate * sqrt(step)``) and ``m_k ~ N(prior_mean_k, 1 / prior_precision)``
+    per axis (``prior_precision`` in 1/m^2). Returns ``m``, knots and the covariance ``(K, 3, 3)``
+    of ``m``. The drift block is banded (same for each axis); ``m`` comes from its Schur
+    complement."""
     T, K = w.shape
     n = knots.n
     jj, uu = np.repeat(j, K), np.repeat(u, K)
@@ -503,8 +610,8 @@ def _solve_translation(knots: _Knots, j, u, G, y, w, rate):
             Ndm[a] += np.bincount((jj + 1) * K * 3 + col, val * uu, n * K * 3).reshape(n, K * 3)
     wk = np.bincount(kk, wf, K)
     bm = np.stack([np.bincount(kk, wf * np.einsum("nji,nj->ni", Gf, yf)[:, c], K) for c in range(3)], -1).ravel()
-    S = np.diag(np.repeat(wk, 3) + 1.0 / _MOUNT_PRIOR_M**2)
-    rhs = bm.copy()
+    S = np.diag(np.repeat(wk, 3) + prior_precision)
+    rhs = bm + prior_precision * np.asarray(prior_mean, np.float64).ravel()
     X = np.empty_like(Ndm)
     z = np.empty_like(bd)
     for a in range(3):

@@ -30,6 +30,7 @@ from typing import Any, Callable
 import numpy as np
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.rig import tracker_site
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.fileio import load_npz, save_npz
 from dualhuman_builder.sync.resample import resample_linear, resample_quat
@@ -40,6 +41,11 @@ MAX_GAP_S = 0.05
 #: Knot spacing (s) of the suit position drift solved with the mounts: the drift is slow, and
 #: finer knots let it absorb the suit's limb errors and the mounts' offsets.
 MOUNT_DRIFT_KNOTS_S = 1.0
+#: Speed spread (std) below which a stream is too still for a lag: angular rad/s, linear m/s.
+MIN_ANGULAR_MOTION = 0.02
+MIN_LINEAR_MOTION = 0.02
+#: A heading (suit world in the tracker world) less certain than this (1-sigma, deg) is reported.
+HEADING_WARN_DEG = 1.0
 
 
 class SyncError(DualhumanError):
@@ -110,7 +116,8 @@ class SyncResult:
             if a.serials:
                 a.trk_rot, a.trk_pos, a.trk_valid = arrays[p + "trk_rot"], arrays[p + "trk_pos"], arrays[p + "trk_valid"]
                 if f"{p}mount/rotations" in arrays:
-                    a.mounts = MountCalibration(**{k: arrays[f"{p}mount/{k}"] for k in MountCalibration.__dataclass_fields__})
+                    a.mounts = MountCalibration(**{k: arrays[f"{p}mount/{k}"] for k in MountCalibration.__dataclass_fields__
+                                                         if f"{p}mount/{k}" in arrays})  # fmt: skip
             actors.append(a)
         return cls(float(meta["fps"]), arrays["times_s"], actors, meta.get("report", {}))
 
@@ -180,7 +187,7 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     suits' order); every one needs a suit. ``use_trackers=False`` ignores trackers (to measure what
     fusion buys)."""
     from dualhuman_builder.sync.clock import fit_clock
-    from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag
+    from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed
     from dualhuman_builder.sync.mount import calibrate_mounts
 
     say = progress or (lambda _m: None)
@@ -233,16 +240,24 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     for t in trackers:
         s = by_actor[t.actor]
         seg = MVN_SEGMENTS.index(columns[t.key].metadata["segment"])
+        pos = np.asarray(t.cols["position"], np.float64)
         valid = np.asarray(t.cols["valid"], bool)
-        try:
-            ta, sa = angular_speed(np.round(t_suit[s.actor] * 1e9).astype(np.int64), s.cols["orientations"][:, seg])
-            tb, sb = angular_speed(np.round(t_trk[t.key] * 1e9).astype(np.int64), t.cols["orientation"], valid)
-            est = estimate_lag(ta, sa, tb, sb)
-        except ValueError as e:
-            report["lags"][t.key] = {"error": str(e)}
-            continue
-        report["lags"][t.key] = {"lag_ms": _ms(est.lag_ns * 1e-9), "std_ms": _ms(est.std_ns * 1e-9), "peak": round(float(est.peak), 4)}
-        lags_by_source.setdefault(t.source, []).append(est)
+        seen = valid & ~np.all(pos == 0.0, axis=1)  # a tracker that lost tracking reports the origin
+        ns_suit = np.round(t_suit[s.actor] * 1e9).astype(np.int64)
+        ns_trk = np.round(t_trk[t.key] * 1e9).astype(np.int64)
+        # two measurements per tracker: angular speeds (mount-independent), and linear speeds for
+        # segments that translate more than they turn (an actor standing still but patting)
+        pairs = ((t.key, angular_speed, s.cols["orientations"][:, seg], t.cols["orientation"], valid, MIN_ANGULAR_MOTION),
+                 (f"{t.key} (position)", linear_speed, s.cols["positions"][:, seg], pos, seen, MIN_LINEAR_MOTION))  # fmt: skip
+        for name, speed, of_suit, of_tracker, ok, min_motion in pairs:
+            try:
+                est = estimate_lag(*speed(ns_suit, of_suit), *speed(ns_trk, of_tracker, ok), min_motion=min_motion)
+            except ValueError as e:
+                report["lags"][name] = {"error": str(e)}
+                continue
+            report["lags"][name] = {"lag_ms": _ms(est.lag_ns * 1e-9), "std_ms": _ms(est.std_ns * 1e-9),
+                                    "peak": round(float(est.peak), 4)}  # fmt: skip
+            lags_by_source.setdefault(t.source, []).append(est)
     lag_s = {}
     for source, ests in lags_by_source.items():
         comb = combine_lags(ests)
@@ -292,12 +307,20 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
             try:
                 a.mounts = calibrate_mounts(times, np.nan_to_num(a.suit_rot[:, seg_idx]), np.nan_to_num(a.suit_pos[:, seg_idx]),
                                             np.nan_to_num(a.trk_rot), np.nan_to_num(a.trk_pos), usable,
-                                            drift_knot_spacing_s=MOUNT_DRIFT_KNOTS_S)  # fmt: skip
+                                            drift_knot_spacing_s=MOUNT_DRIFT_KNOTS_S,
+                                            sites=np.array([tracker_site(g) for g in a.segments]))  # fmt: skip
             except ValueError as e:
                 report.setdefault("warnings", []).append(f"{name}: tracker mounts not calibrated ({e}); fitting without trackers")
                 a.serials, a.segments, a.trk_rot, a.trk_pos, a.trk_valid = (), (), None, None, None
             else:
                 report["mounts"][name] = {serial: describe_mount(a.mounts, k) for k, serial in enumerate(a.serials)}
+                h_std = float(a.mounts.heading_std_deg)
+                report.setdefault("heading", {})[name] = {"offset_deg": round(float(a.mounts.heading_offset_deg), 3),
+                                                          "std_deg": round(h_std, 3) if np.isfinite(h_std) else None}
+                if not h_std <= HEADING_WARN_DEG:
+                    report.setdefault("warnings", []).append(
+                        f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
+                        "turns, so it rests on where the trackers are strapped; start takes with a calibration turn")
                 say(f"{name}: {K} trackers calibrated on their segments")
         out.append(a)
     return SyncResult(float(fps), times, out, report)
