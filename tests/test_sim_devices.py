@@ -17,11 +17,12 @@ from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
 from dualhuman_builder.capture.samples import ImuSample, SuitFrame, TrackerSample
 from dualhuman_builder.conventions import GRAVITY
 from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+from dualhuman_builder.rig import TRACKER_SITES
 from dualhuman_builder.sim.imu import (ImuNoiseModel, earth_magnetic_field, gauss_markov, imu_errors, simulate_imu,
                                        specific_force)  # fmt: skip
 from dualhuman_builder.sim.kinematics import DeviceClock, KinematicSpline, resample
 from dualhuman_builder.sim.suit import MVN_SENSOR_SEGMENTS, SuitErrorModel, simulate_suit
-from dualhuman_builder.sim.trackers import (NOMINAL_MOUNTS, TrackerErrorModel, default_sites,
+from dualhuman_builder.sim.trackers import (TrackerErrorModel, default_sites,
                                             simulate_trackers)  # fmt: skip
 from dualhuman_builder.tracks import SkeletonTrack
 
@@ -364,7 +365,7 @@ def test_tracker_noise_is_as_configured_and_mounts_are_realistic(moving):
         mounted = (r_seg * R.from_quat(trackers.mount_rotation[i])).as_quat()
         assert angle_between(trackers.true_orientation[i], mounted).max() < 2e-4
         # a few cm off the segment origin, on the surface side of its nominal site
-        m, nominal = trackers.mount_translation[i], np.asarray(NOMINAL_MOUNTS[seg])
+        m, nominal = trackers.mount_translation[i], np.asarray(TRACKER_SITES[seg])
         assert 0.02 < np.linalg.norm(m) < 0.25 and np.linalg.norm(m - nominal) < 0.05
         assert np.dot(m, nominal) > 0
     assert trackers.mount_translation[trackers.index("SYNTH-PELVIS"), 0] < -0.05  # on the back

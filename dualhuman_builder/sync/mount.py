@@ -62,7 +62,8 @@ class MountCalibration:
     ``translation_std_m (K,)`` (norms: sqrt of the covariance trace, inflated for residuals
     correlated over ~1 s; with tracker sites they include ``heading_std_deg``). With sites,
     ``heading_offset_deg`` is the constant heading correction the constellation search applied and
-    ``heading_std_deg`` its 1-sigma (both 0 without sites). ``outliers (T, K)``: valid samples rejected (origin jumps, rotation or
+    ``heading_std_deg`` its 1-sigma (both 0 without sites). ``outliers (T, K)``: valid samples
+    rejected (origin jumps, rotation or
     position residual above max(6 x median, 2 deg / 2 cm)). ``calibrated (K,)``: False where a
     tracker had fewer than 10 usable samples; its entries are NaN.
     """
@@ -377,9 +378,9 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     keeps a segment that hardly rotates solvable, with a large ``translation_std_m``.
 
     ``sites (K, 3)`` (m, segment frame; optional): where each tracker is strapped on its segment
-    (the capture protocol's site, e.g. :data:`~dualhuman_builder.rig.TRACKER_SITES`). Orientations alone cannot tell the
-    heading from a yaw shared by all mounts while the segments do not turn (an actor standing
-    still): then the tracker constellation decides. With sites, ``m_k ~ N(site_k, site_prior_m^2)``
+    (the capture protocol's site, e.g. :data:`~dualhuman_builder.rig.TRACKER_SITES`). Orientations
+    alone cannot tell the heading from a yaw shared by all mounts while the segments do not turn
+    (an actor standing still): then the tracker constellation decides. With sites, ``m_k ~ N(site_k, site_prior_m^2)``
     per axis, and a constant heading offset is searched (a 2-degree grid over +-20 degrees, then a
     parabola) minimising the negative log-likelihood of the orientation and position residuals
     plus that prior, with the mounts and drift re-solved at each offset; residuals are counted
@@ -557,7 +558,7 @@ class _HeadingProblem:
         pos = float(np.sum(self.w_pos * en**2))
         walk = float(np.sum(np.diff(d_knots, axis=0) ** 2)) / (self.rate**2 * self.dk.step)
         prior = self.m_prec * float(np.sum((m - self.m0) ** 2))
-        return 0.5 * (self.scale * (rot + pos + walk) + self.scale * prior)
+        return 0.5 * self.scale * (rot + pos + walk + prior)  # scale * m_prec = 1 / site_prior_m^2
 
     def search(self, psi) -> tuple[float, float]:
         """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`."""
