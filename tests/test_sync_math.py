@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation as R
 
+from dualhuman_builder.rig import TRACKER_SITES
 from dualhuman_builder.sim.kinematics import DeviceClock
 from dualhuman_builder.sync.clock import ClockFit, fit_clock, relative_clock
 from dualhuman_builder.sync.lag import (
@@ -18,8 +19,8 @@ from dualhuman_builder.sync.lag import (
     angular_speed,
     combine_lags,
     estimate_lag,
+    linear_speed,
 )
-from dualhuman_builder.rig import TRACKER_SITES
 from dualhuman_builder.sync.mount import MountCalibration, calibrate_mounts
 
 TRACKER_CLOCK = DeviceClock(offset_s=0.25, drift_ppm=30.0, latency_s=0.004, jitter_s=0.001)
@@ -230,6 +231,34 @@ def test_estimate_lag_errors():
         estimate_lag(*a, *angular_speed(other_t, other_q))
     with pytest.raises(ValueError, match="speeds must match"):
         estimate_lag(a[0], a[1][:-1], *b)
+
+
+def test_linear_speed_and_a_lag_from_positions():
+    """A point moving on a smooth path: linear_speed gives |dp/dt| (any world rotation), skips
+    invalid samples, and two streams of it, one stamped 7 ms late, give that lag."""
+    t = np.arange(0.0, 8.0, 1 / 240)
+    path = lambda x: np.stack([0.3 * np.sin(1.3 * x), 0.1 * np.sin(0.7 * x + 1), 0.2 * np.cos(2.1 * x)], -1)  # noqa: E731
+    true_speed = lambda x: np.linalg.norm(np.stack([0.39 * np.cos(1.3 * x), 0.07 * np.cos(0.7 * x + 1),  # noqa: E731
+                                                    -0.42 * np.sin(2.1 * x)], -1), axis=1)  # fmt: skip
+    ns = np.round(t * 1e9).astype(np.int64)
+    mid, sp = linear_speed(ns, R.from_rotvec([0, 1.0, 0]).apply(path(t)), smooth_s=0.0)
+    assert np.abs(sp - true_speed(mid * 1e-9)).max() < 1e-3
+    valid = np.ones(t.shape, bool)
+    valid[100] = False
+    mid_v, _ = linear_speed(ns, path(t), valid)
+    assert mid_v.shape[0] == t.shape[0] - 3  # the two pairs touching sample 100 are dropped
+    tb = np.arange(0.0, 8.0, 1 / 250)
+    late = np.round((tb + 0.007) * 1e9).astype(np.int64)
+    est = estimate_lag(*linear_speed(ns, path(t)), *linear_speed(late, path(tb)), min_motion=0.02)
+    assert abs(est.lag_ns - 7e6) < 0.3e6
+    with pytest.raises(ValueError, match=r"positions must have shape \(1920, 3\)"):
+        linear_speed(ns, path(t)[:, :2])
+    bad = path(t)
+    bad[5] = np.nan
+    with pytest.raises(ValueError, match="positions has non-finite values at valid samples"):
+        linear_speed(ns, bad)
+    with pytest.raises(ValueError, match="need at least 2 samples for a speed"):
+        linear_speed(ns[:1], path(t)[:1])
 
 
 def test_combine_lags_drops_the_odd_one_and_weights_by_variance():

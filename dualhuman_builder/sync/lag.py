@@ -85,39 +85,12 @@ def angular_speed(times_ns, quats_xyzw, valid=None, smooth_s: float = 0.04) -> t
     Returns ``(t_ns, speed)``: float64 ``(M,)`` midpoint times (ns) and speeds (rad/s), ``M <= N-1``
     (pairs touching an invalid sample are dropped).
     """
-    t = _check_times("times_ns", times_ns)
-    q = np.asarray(quats_xyzw, dtype=np.float64)
-    n = t.shape[0]
-    if q.shape != (n, 4):
-        raise ValueError(f"quats_xyzw must have shape ({n}, 4) to match times_ns, got {q.shape}")
-    v = np.ones(n, dtype=bool) if valid is None else np.asarray(valid)
-    if v.shape != (n,) or v.dtype != bool:
-        raise ValueError(f"valid must be a bool array of shape ({n},), got {v.dtype} {v.shape}")
-    if not (smooth_s >= 0 and math.isfinite(smooth_s)):
-        raise ValueError(f"smooth_s must be finite and >= 0, got {smooth_s}")
-    if n < 2:
-        raise ValueError(f"need at least 2 samples for an angular speed, got {n}")
-    if np.any(np.diff(t) <= 0):
-        raise ValueError("times_ns must increase strictly")
-    qv = q[v]
-    norms = np.linalg.norm(qv, axis=1)
-    if not np.all(np.isfinite(qv)) or np.any(norms < 1e-9):
-        raise ValueError("quats_xyzw has non-finite or zero-norm quaternions at valid samples")
-    pair = v[:-1] & v[1:]
-    k = np.flatnonzero(pair)
-    t64 = t.astype(np.float64) if t.dtype.kind == "f" else None
-    if t64 is None:
-        dt_ns = (t[k + 1] - t[k]).astype(np.float64)
-        mid = t[k].astype(np.float64) + 0.5 * dt_ns
-    else:
-        dt_ns = t64[k + 1] - t64[k]
-        mid = t64[k] + 0.5 * dt_ns
-    if k.size == 0:
-        return mid, np.zeros(0)
-    w = _relative_rotvec(q[k], q[k + 1]) / (dt_ns * 1e-9)[:, None]
-    if smooth_s > 0:
-        w = _gauss_smooth(mid, w, dt_ns, smooth_s * 1e9)
-    return mid, np.linalg.norm(w, axis=1)
+    def check(q, v):
+        qv = q[v]
+        if not np.all(np.isfinite(qv)) or np.any(np.linalg.norm(qv, axis=1) < 1e-9):
+            raise ValueError("quats_xyzw has non-finite or zero-norm quaternions at valid samples")
+
+    return _speed(times_ns, quats_xyzw, "quats_xyzw", 4, valid, smooth_s, "an angular speed", check, _relative_rotvec)
 
 
 def linear_speed(times_ns, positions, valid=None, smooth_s: float = 0.04) -> tuple[np.ndarray, np.ndarray]:
@@ -130,32 +103,45 @@ def linear_speed(times_ns, positions, valid=None, smooth_s: float = 0.04) -> tup
     seconds before the norm (as :func:`angular_speed`). A tracker and the origin of its segment
     differ by the lever arm's ``w x m`` (a few cm/s), not by a delay. Returns ``(t_ns, speed)``.
     """
+    def check(p, v):
+        if not np.all(np.isfinite(p[v])):
+            raise ValueError("positions has non-finite values at valid samples")
+
+    return _speed(times_ns, positions, "positions", 3, valid, smooth_s, "a speed", check, lambda p0, p1: p1 - p0)
+
+
+def _speed(times_ns, values, name: str, width: int, valid, smooth_s: float, what: str, check, step):
+    """Shared body of :func:`angular_speed` and :func:`linear_speed`: validate ``values (N, width)``
+    against ``times_ns`` and ``valid`` (``check(values, valid)`` for the kind's own test), then
+    ``step(x_k, x_k+1)`` per consecutive valid pair over its interval, stamped at the midpoint,
+    Gaussian-smoothed (``smooth_s``) before the norm. Returns ``(t_ns, speed)``."""
     t = _check_times("times_ns", times_ns)
-    p = np.asarray(positions, dtype=np.float64)
+    x = np.asarray(values, dtype=np.float64)
     n = t.shape[0]
-    if p.shape != (n, 3):
-        raise ValueError(f"positions must have shape ({n}, 3) to match times_ns, got {p.shape}")
+    if x.shape != (n, width):
+        raise ValueError(f"{name} must have shape ({n}, {width}) to match times_ns, got {x.shape}")
     v = np.ones(n, dtype=bool) if valid is None else np.asarray(valid)
     if v.shape != (n,) or v.dtype != bool:
         raise ValueError(f"valid must be a bool array of shape ({n},), got {v.dtype} {v.shape}")
     if not (smooth_s >= 0 and math.isfinite(smooth_s)):
         raise ValueError(f"smooth_s must be finite and >= 0, got {smooth_s}")
     if n < 2:
-        raise ValueError(f"need at least 2 samples for a speed, got {n}")
+        raise ValueError(f"need at least 2 samples for {what}, got {n}")
     if np.any(np.diff(t) <= 0):
         raise ValueError("times_ns must increase strictly")
-    if not np.all(np.isfinite(p[v])):
-        raise ValueError("positions has non-finite values at valid samples")
+    check(x, v)
     k = np.flatnonzero(v[:-1] & v[1:])
-    tf = t.astype(np.float64)
-    dt_ns = tf[k + 1] - tf[k]
-    mid = tf[k] + 0.5 * dt_ns
+    if t.dtype.kind == "f":
+        dt_ns = t[k + 1].astype(np.float64) - t[k]
+    else:  # integer nanoseconds: exact differences before float64
+        dt_ns = (t[k + 1] - t[k]).astype(np.float64)
+    mid = t[k].astype(np.float64) + 0.5 * dt_ns
     if k.size == 0:
         return mid, np.zeros(0)
-    vel = (p[k + 1] - p[k]) / (dt_ns * 1e-9)[:, None]
+    rate = step(x[k], x[k + 1]) / (dt_ns * 1e-9)[:, None]
     if smooth_s > 0:
-        vel = _gauss_smooth(mid, vel, dt_ns, smooth_s * 1e9)
-    return mid, np.linalg.norm(vel, axis=1)
+        rate = _gauss_smooth(mid, rate, dt_ns, smooth_s * 1e9)
+    return mid, np.linalg.norm(rate, axis=1)
 
 
 def _relative_rotvec(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
