@@ -206,6 +206,50 @@ def test_batch_equals_frames_one_by_one(ct, bodies):
     assert r.loss[1].item() == 0.0
 
 
+def test_keys_reuse_signs_and_give_the_same_answer(bodies):
+    """Calls naming their frames reuse the last call's signs where the bodies moved too little to
+    change them; every answer equals a fresh term's, through small moves (reuse) and large ones
+    (vertices crossing the surface, a body pushed 5 cm deeper)."""
+    fresh = CollisionTerm(bodies["faces"])
+    kept = CollisionTerm(bodies["faces"])
+    a = bodies["a"]
+    rng = np.random.default_rng(0)
+    moves = [0.0, 0.0005, 0.001, -0.002, 0.0, -0.05, -0.048, 0.06]  # metres along Z, both frames
+    reused = []
+    for step, dz in enumerate(moves):
+        b = torch.cat([place(bodies, dz=HUG_DZ + dz)[1], place(bodies, dz=BACK_DZ - dz)[1]])
+        b = b + torch.as_tensor(rng.normal(0, 2e-4, b.shape), dtype=b.dtype)  # every vertex moves
+        A = torch.cat([a, a])
+        pf = fresh.penetration(A, b)
+        pk = kept.penetration(A, b, keys=[7, 8])
+        for k in ("depth_a", "depth_b"):
+            assert np.abs(pf[k] - pk[k]).max() < 1e-6, (step, k)
+        assert pk["penetrating"].tolist() == pf["penetrating"].tolist()
+        assert pf["penetrating"][0] > 0  # the hug always overlaps; back to back parts at the last move
+        reused.append(kept.last_stats["reused"] / kept.last_stats["candidates"])
+        va, vb = A.clone().requires_grad_(True), b.clone().requires_grad_(True)
+        rk = kept(va, vb, keys=np.array([7, 8]))
+        rk.loss.sum().backward()
+        wa, wb = A.clone().requires_grad_(True), b.clone().requires_grad_(True)
+        rf = fresh(wa, wb)
+        rf.loss.sum().backward()
+        assert torch.allclose(rk.loss, rf.loss, rtol=1e-6, atol=1e-12)
+        assert torch.allclose(va.grad, wa.grad, atol=1e-9) and torch.allclose(vb.grad, wb.grad, atol=1e-9)
+    assert reused[0] == 0.0  # nothing remembered yet
+    # small moves: most signs carried over (bounds shrink by each move until a vertex is asked again)
+    assert reused[1] > 0.9 and min(reused[1:5]) > 0.5
+    assert reused[5] < reused[4]  # 5 cm deeper: many vertices had to be asked again
+    with pytest.raises(ValueError, match="name each of the 2 frames"):
+        kept.penetration(A, b, keys=[1])
+    with pytest.raises(ValueError, match="distinct"):
+        kept(A, b, keys=[3, 3])
+    small = CollisionTerm(bodies["faces"], max_memo=1)
+    small.penetration(A, b, keys=["x", "y"])
+    assert len(small._memo) == 1
+    kept.clear_memo()
+    assert not kept._memo
+
+
 def test_rho_keeps_pushing_deep_vertices(bodies):
     d = torch.tensor([0.001, 0.05], requires_grad=True)
     for name in ("pseudo_huber", "squared", "geman_mcclure"):

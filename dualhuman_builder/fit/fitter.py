@@ -18,7 +18,9 @@ quadratic); ``transl`` starts at the fused pelvis position. The skeleton terms u
 :class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
 few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
 penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
-and only those frames get the collision pass. Frames far apart pay nothing.
+and only those frames get the collision pass. Frames far apart pay nothing. The collision term is
+called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
+one where the bodies moved too little to change them (exact; see :mod:`~dualhuman_builder.fit.collision`).
 """
 
 # ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
@@ -270,7 +272,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
         if collide is not None:
             with torch.no_grad():
                 verts = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
-                pen = collide.penetration(verts[0], verts[1])
+                pen = collide.penetration(verts[0], verts[1], keys=range(s0, s1))
             pen_before[sl] = pen["max_depth_m"]
             pen_share_before[sl] = pen["share"]
             hit = np.flatnonzero(pen["max_depth_m"] > 0)
@@ -281,12 +283,12 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 hit_t = torch.as_tensor(hit, device=dev)
                 copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
 
-                def cclosure(hit_t=hit_t, weight=weight, copt=copt):
+                def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
                     copt.zero_grad()
                     e, _ = skeleton_energy()
                     vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
                           for k, a in enumerate(acts)]  # fmt: skip
-                    c = collide(vs[0], vs[1]).loss.sum()
+                    c = collide(vs[0], vs[1], keys=s0 + hit).loss.sum()
                     e = e + weight * c
                     e.backward()
                     return e
@@ -298,7 +300,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 # neighbours are refitted. Frames pushed into contact by their neighbours join.
                 with torch.no_grad():
                     vs = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
-                    left = collide.penetration(vs[0], vs[1])["max_depth_m"]
+                    left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
                 rounds_used = max(rounds_used, _round + 1)
                 if left.max() <= cfg.collision_tolerance_m:
                     break
@@ -337,7 +339,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             sl = slice(s0, min(s0 + 64, T))
             with torch.no_grad():
                 vs = [a.pose(deltas[k][sl], dtransl[k][sl], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
-                pen = collide.penetration(vs[0], vs[1])
+                pen = collide.penetration(vs[0], vs[1], keys=range(sl.start, sl.stop))
             pen_after[sl] = pen["max_depth_m"]
             share_after[sl] = pen["share"]
         frames["penetration depth (mm)/without collision term"] = pen_before * 1000
