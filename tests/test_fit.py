@@ -95,3 +95,60 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert not any(f.fused_with_trackers for f in free.fused)
     ev_free = evaluate_take_fit(free, scene, seed=1, model=model)
     assert ev_free["root_mm"] > ev["root_mm"]
+
+
+def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
+    """The sync report carries each actor's heading and its 1-sigma, and warns (naming the actor
+    and the calibration turn) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``."""
+    from dualhuman_builder.capture.log.reader import read_columns
+    from dualhuman_builder.sync import timeline
+
+    take, _ = recorded
+    columns = read_columns(take)
+
+    def heading_warnings(report):
+        return [w for w in report.get("warnings", []) if "calibration turn" in w]
+
+    report = synchronise(columns, fps=15.0).report
+    stds = {name: h["std_deg"] for name, h in report["heading"].items()}
+    assert sorted(stds) == ["sim-a", "sim-b"] and all(s is not None and 0 < s for s in stds.values())
+    assert len(heading_warnings(report)) == sum(s > timeline.HEADING_WARN_DEG for s in stds.values())
+    # with a threshold below every 1-sigma, each actor is warned about, by name and figure
+    monkeypatch.setattr(timeline, "HEADING_WARN_DEG", 0.5 * min(stds.values()))
+    warned = heading_warnings(synchronise(columns, fps=15.0).report)
+    assert len(warned) == 2
+    for name, std in stds.items():
+        assert any(w.startswith(f"{name}: heading") and f"{std:.1f} deg" in w for w in warned), warned
+
+
+def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch):
+    """Two bodies on one spot: the collision pass runs. If its loss turns non-finite, the line
+    search steps to NaN corrections; the fitter undoes the pass and reports it, never returning
+    NaN bodies or crashing."""
+    from dualhuman_builder.fit import collision
+    from dualhuman_builder.fit.fitter import ActorInput
+
+    T = 4
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
+    pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
+    inputs = [ActorInput(name, {}, quat, pelvis + [dx, 0, 0], np.ones(T, bool), np.zeros((T, 0, 3)), np.zeros((T, 0), bool),
+                         np.zeros(0, np.int64), np.zeros((0, 3)), np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
+              for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
+    cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2)
+    healthy = fit_actors(model, inputs, 15.0, cfg)
+    assert healthy.summary["collision_frames"] == T and healthy.summary["collision_diverged"] == []
+    real_call = collision.CollisionTerm.__call__
+
+    def poisoned(self, va, vb, keys=None):
+        r = real_call(self, va, vb, keys)
+        r.loss = r.loss * float("nan")
+        return r
+
+    monkeypatch.setattr(collision.CollisionTerm, "__call__", poisoned)
+    res = fit_actors(model, inputs, 15.0, cfg)
+    # windows of 4 frames overlapping by 4 start at every frame: each one's first round is undone
+    assert res.summary["collision_diverged"] == [f"frames {s}-3, collision round 1" for s in range(T)]
+    for track in res.sequence.actors:
+        assert np.isfinite(np.asarray(track.pose)).all() and np.isfinite(np.asarray(track.transl)).all()
+    # undone: the bodies are where the skeleton pass left them, still overlapping
+    assert res.summary["max_penetration_after_mm"] == pytest.approx(res.summary["max_penetration_before_mm"], rel=1e-3)

@@ -44,6 +44,10 @@ class FitError(DualhumanError):
     """The fit cannot run on this input."""
 
 
+class _Diverged(Exception):
+    """An L-BFGS line search stepped to non-finite parameters."""
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Weights are standard deviations (the terms are squared residuals over them)."""
@@ -232,6 +236,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     pen_share_before = np.zeros(T)
     collided_frames = 0
     rounds_used = 0
+    diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
@@ -282,8 +287,11 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             for _round in range(max(int(cfg.collision_rounds), 1) if len(hit) else 0):
                 hit_t = torch.as_tensor(hit, device=dev)
                 copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+                kept = [p.detach().clone() for p in params]
 
                 def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
+                    if not all(bool(torch.isfinite(p).all()) for p in params):
+                        raise _Diverged
                     copt.zero_grad()
                     e, _ = skeleton_energy()
                     vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
@@ -293,7 +301,17 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     e.backward()
                     return e
 
-                copt.step(cclosure)
+                try:
+                    copt.step(cclosure)
+                except _Diverged:
+                    pass
+                if not all(bool(torch.isfinite(p).all()) for p in params):
+                    # the line search stepped to non-finite corrections: keep the last round's answer
+                    with torch.no_grad():
+                        for p, k in zip(params, kept):
+                            p.copy_(k)
+                    diverged.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}")
+                    break
                 # how deep one pass leaves a frame depends on where it started, so frames still deeper than
                 # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
                 # the term: released, it would spring back (the other terms still pull it in) while its
@@ -347,7 +365,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in acts])
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
-               "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used)}  # fmt: skip
+               "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used),
+               "collision_diverged": diverged}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),
