@@ -20,7 +20,9 @@ few milliseconds per window iteration); the full meshes are skinned only for fra
 penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
 and only those frames get the collision pass. Frames far apart pay nothing. The collision term is
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
-one where the bodies moved too little to change them (exact; see :mod:`~dualhuman_builder.fit.collision`).
+one where the bodies moved too little to change them (the same answer wherever the pseudonormal sign
+is well defined; see :mod:`~dualhuman_builder.fit.collision`). A collision pass whose line search steps
+to non-finite corrections is undone and listed in the summary (``collision_diverged``).
 """
 
 # ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
@@ -46,6 +48,10 @@ class FitError(DualhumanError):
 
 class _Diverged(Exception):
     """An L-BFGS line search stepped to non-finite parameters."""
+
+
+def _finite(tensors) -> bool:
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
 @dataclass(frozen=True)
@@ -290,7 +296,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 kept = [p.detach().clone() for p in params]
 
                 def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
-                    if not all(bool(torch.isfinite(p).all()) for p in params):
+                    if not _finite(params):
                         raise _Diverged
                     copt.zero_grad()
                     e, _ = skeleton_energy()
@@ -305,7 +311,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     copt.step(cclosure)
                 except _Diverged:
                     pass
-                if not all(bool(torch.isfinite(p).all()) for p in params):
+                if not _finite(params):
                     # the line search stepped to non-finite corrections: keep the last round's answer
                     with torch.no_grad():
                         for p, k in zip(params, kept):
