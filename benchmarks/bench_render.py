@@ -290,7 +290,8 @@ def main(argv=None):
     ap.add_argument("--memory-size", type=int, default=64)
     ap.add_argument("--workers", type=int, default=None, help="encoder threads (default: the pipeline's, min(8, CPUs))")
     ap.add_argument("--diagnose", action="store_true",
-                    help="also time the pipeline with a 0.5 ms GIL switch interval and with the file encoders skipped")
+                    help="also time each main-thread step alone and inside the pipeline, and the pipeline with a 0.5 ms "
+                         "GIL switch interval and with the file encoders skipped")
     ap.add_argument("--profile", action="store_true", help="also print where one pipeline run's main thread spends its time")
     ap.add_argument("--json", type=Path, default=None, help="default benchmarks/results/render_<variant>_<size>.json")
     args = ap.parse_args(argv)
@@ -324,7 +325,7 @@ def main(argv=None):
     bare, full = statistics.median(r[0] for r in bare_runs), statistics.median(r[0] for r in full_runs)
     bare_cpu, full_cpu = statistics.median(r[1] for r in bare_runs), statistics.median(r[1] for r in full_runs)
     enc = encode_ms(args.size)
-    steps = breakdown(renderer, sub)
+    steps = breakdown(renderer, sub) if args.diagnose else {}  # renders the whole sequence again
     if args.profile:
         profile_pipeline(sub, cams, spp, args.variant, args.workers)
     if args.diagnose:
@@ -338,7 +339,8 @@ def main(argv=None):
     print(f"pipeline / bare: {ratio:.3f} by wall time, {ratio_cpu:.3f} by CPU time (goal >= 0.8)")
     print(f"  runs (images/s): bare {[round(x[0], 3) for x in bare_runs]}, pipeline {[round(x[0], 3) for x in full_runs]}")
     print("encoding one view on one thread, ms: " + ", ".join(f"{k} {v}" for k, v in enc.items()))
-    print("main thread per image, ms: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
+    if steps:
+        print("main thread per image, steps alone, ms: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
     del renderer
     result = {"variant": variant, "mitsuba": doc.get("mitsuba"), "size": args.size, "spp": spp, "views": args.views,
               "frames": args.frames, "repeats": args.repeats, "template": doc.get("template"), "scene_build_s": round(build_s, 2),

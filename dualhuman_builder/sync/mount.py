@@ -197,6 +197,13 @@ class _Knots:
         return diag, off1, rhs
 
 
+def _at_knots(values: np.ndarray, j: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Linear interpolation of knot ``values (J, ...)`` at samples located by :meth:`_Knots.locate`
+    (knot ``j (T,)``, fraction ``u (T,)``): ``(T, ...)``."""
+    u = u.reshape(u.shape + (1,) * (values.ndim - 1))
+    return values[j] * (1 - u) + values[j + 1] * u
+
+
 def _yaw_matrices(psi: np.ndarray) -> np.ndarray:
     c, s = np.cos(psi), np.sin(psi)
     Y = np.zeros(psi.shape + (3, 3))
@@ -437,13 +444,13 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     for outer in range(2):
         inl = use & ~rot_out & ~trans_out
         for _ in range(max(1, int(rounds))):
-            psi = psi_knots[hj] * (1 - hu) + psi_knots[hj + 1] * hu
+            psi = _at_knots(psi_knots, hj, hu)
             G = _yaw_matrices(psi)[:, None] @ Rs  # Y R_seg (T, K, 3, 3)
             A = np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True)
             M, _ = _project_so3(A)
             Q = Rt @ np.swapaxes(M, -1, -2)[None] @ np.swapaxes(Rs, -1, -2)
             psi_knots = _fit_heading(hk, hj, hu, Q, inl.astype(np.float64), psi)
-            psi = psi_knots[hj] * (1 - hu) + psi_knots[hj + 1] * hu
+            psi = _at_knots(psi_knots, hj, hu)
             G = _yaw_matrices(psi)[:, None] @ Rs
             ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
             rot_out = _flag(ang, use & ~trans_out, _ROT_FLOOR_RAD)
@@ -462,7 +469,7 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
             inl = use & ~rot_out & ~trans_out
             w = inl * huber / sigma[None] ** 2
             m, d_knots, cov_m = _solve_translation(dk, dj, du, G, y, w, drift_rate_m_per_sqrt_s, m0, m_prec)
-            d_t = d_knots[dj] * (1 - du)[:, None] + d_knots[dj + 1] * du[:, None]
+            d_t = _at_knots(d_knots, dj, du)
             e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
             en = np.linalg.norm(e, axis=-1)
             trans_out = _flag(en, use & ~rot_out, _TRANS_FLOOR_M)
@@ -486,7 +493,7 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         psi_knots = psi_knots + offset
         psi = psi + offset
         G, M, m, d_knots, cov_m, e, en = problem.solve(psi)
-        d_t = d_knots[dj] * (1 - du)[:, None] + d_knots[dj + 1] * du[:, None]
+        d_t = _at_knots(d_knots, dj, du)
     counts = inl.sum(axis=0)
     calibrated = counts >= _MIN_SAMPLES
     ang, rv = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
@@ -541,7 +548,7 @@ class _HeadingProblem:
         y = self.p_trk - np.einsum("tij,tkj->tki", Yt, self.p_seg)
         m, d_knots, cov_m = _solve_translation(self.dk, self.dj, self.du, G, y, self.w_pos, self.rate, self.m0,
                                                self.m_prec)  # fmt: skip
-        d_t = d_knots[self.dj] * (1 - self.du)[:, None] + d_knots[self.dj + 1] * self.du[:, None]
+        d_t = _at_knots(d_knots, self.dj, self.du)
         e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
         return G, M, m, d_knots, cov_m, e, np.linalg.norm(e, axis=-1)
 
