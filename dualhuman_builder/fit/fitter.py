@@ -22,7 +22,9 @@ and only those frames get the collision pass. Frames far apart pay nothing. The 
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
 one where the bodies moved too little to change them (the same answer wherever the pseudonormal sign
 is well defined; see :mod:`~dualhuman_builder.fit.collision`). A collision pass whose line search steps
-to non-finite corrections is undone and listed in the summary (``collision_diverged``).
+to non-finite corrections is undone and listed in the summary (``collision_diverged``); so is one
+that leaves the window's deepest frame deeper than the best pass before it (``collision_worsened``):
+the rounds stop there instead of weighting the term up again.
 """
 
 # ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
@@ -52,6 +54,13 @@ class _Diverged(Exception):
 
 def _finite(tensors) -> bool:
     return all(bool(torch.isfinite(t).all()) for t in tensors)
+
+
+def _restore(params, saved) -> None:
+    """Copy ``saved`` tensors back into the optimised ``params`` (in place)."""
+    with torch.no_grad():
+        for p, k in zip(params, saved):
+            p.copy_(k)
 
 
 @dataclass(frozen=True)
@@ -243,6 +252,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     collided_frames = 0
     rounds_used = 0
     diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
+    worsened: list[str] = []  # collision passes that left the deepest frame deeper (undone)
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
@@ -289,11 +299,13 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             hit = np.flatnonzero(pen["max_depth_m"] > 0)
             collided_frames += len(hit)
             weight = cfg.collision_weight
+            # the deepest frame's depth after the best round so far (before any: the skeleton pass's), and
+            # that round's corrections
+            best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params])
 
             for _round in range(max(int(cfg.collision_rounds), 1) if len(hit) else 0):
                 hit_t = torch.as_tensor(hit, device=dev)
                 copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
-                kept = [p.detach().clone() for p in params]
 
                 def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
                     if not _finite(params):
@@ -312,10 +324,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 except _Diverged:
                     pass
                 if not _finite(params):
-                    # the line search stepped to non-finite corrections: keep the last round's answer
-                    with torch.no_grad():
-                        for p, k in zip(params, kept):
-                            p.copy_(k)
+                    # the line search stepped to non-finite corrections: keep the best round's answer
+                    _restore(params, best[1])
                     diverged.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}")
                     break
                 # how deep one pass leaves a frame depends on where it started, so frames still deeper than
@@ -326,6 +336,15 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     vs = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
                     left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
                 rounds_used = max(rounds_used, _round + 1)
+                if left.max() > best[0]:
+                    # deeper than before this round (the data pull the bodies into each other harder than
+                    # the term, weighted up, can hold them apart: an ill-conditioned pass): weighting up
+                    # again makes it worse, so keep the best round's answer and stop
+                    _restore(params, best[1])
+                    worsened.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}: "
+                                    f"{1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")  # fmt: skip
+                    break
+                best = (float(left.max()), [p.detach().clone() for p in params])
                 if left.max() <= cfg.collision_tolerance_m:
                     break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
@@ -372,7 +391,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
                "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used),
-               "collision_diverged": diverged}  # fmt: skip
+               "collision_diverged": diverged, "collision_worsened": worsened}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),

@@ -143,6 +143,9 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
                f"{res.summary.get('max_penetration_after_mm', 0):.1f} mm with it" if config.collision else ""))  # fmt: skip
         for where in res.summary.get("collision_diverged", []):
             log(f"WARNING: the collision pass diverged ({where}) and was undone; those frames may still overlap")
+        for where in res.summary.get("collision_worsened", []):
+            log(f"WARNING: a collision pass left the bodies deeper in each other ({where}) and was undone; "
+                "those frames may still overlap")
         if without:
             log(f"WARNING: fitted without trackers: {without} (the suit's position drift remains)")
         return summary
