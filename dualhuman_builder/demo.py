@@ -136,8 +136,11 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
                 f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
             return {**_write_scene_views(model, sc, out), "quality": sc.stats}
 
+        from dualhuman_builder.sim.scenes import GENERATOR_VERSION
+
         params = {"actors": DEMO_ACTORS, "shapes": shapes, **DEMO_SCENE}
-        res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params=params)
+        res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params=params,
+                           version=str(GENERATOR_VERSION))  # fmt: skip
         _note(result, log, "scene", res)
         if not ws.annotations(DEMO_TAKE):  # scene-generated sequences come labelled with their type and text
             from dualhuman_builder.export.labels import Annotation, check_annotation, load_vocabulary

@@ -160,3 +160,63 @@ def test_two_bone_ik_reaches_bends_towards_the_pole_and_clamps(body_model):
     wrist = heads[0, arm.ie] - shoulder
     assert np.linalg.norm(wrist) == pytest.approx(0.995 * arm.reach, rel=1e-6)
     np.testing.assert_allclose(wrist / np.linalg.norm(wrist), [-1.0, 0.0, 0.0], atol=1e-6)
+
+
+def test_ground_truth_distances_sign_by_winding_number_at_any_depth(body_model):
+    """Two average bodies, the second turned to face the first and pushed 10 cm into it (one
+    frame): the stored distances (m) agree with igl's winding-number signed distance on every
+    vertex inside the partner, however deep (the banded pseudonormal query alone left vertices
+    deeper than DISTANCE_BAND as NaN, so the contract never saw them), and outside within the band."""
+    import igl
+
+    from dualhuman_builder.sim.quality import penetration_depth
+    from dualhuman_builder.sim.scenes import DISTANCE_BAND, ground_truth_distances
+    from dualhuman_builder.tracks import BodyTrack, InteractionSequence
+
+    J = len(body_model.bone_names)
+    shape = body_model.default_shape().cpu().numpy()
+    pose_b = np.zeros((1, J, 3))
+    pose_b[0, 0] = [0.0, np.pi, 0.0]  # facing -Z, towards the first body
+    tracks = [BodyTrack.from_model(body_model, pose, np.array([[0.0, 0.0, z]]), shape, FPS, actor=name)
+              for pose, z, name in ((np.zeros((1, J, 3)), 0.0, "a"), (pose_b, 0.10, "b"))]  # fmt: skip
+    seq = InteractionSequence(tuple(tracks))
+    dist = ground_truth_distances(seq)
+    assert dist[0].shape == (1, body_model.num_vertices) and dist[0].dtype == np.float16
+    faces = _closed_mesh(body_model).astype(np.int64)
+    on_surface = np.unique(faces)  # eyes and mouth interior are not queried by the winding sign
+    va, vb = (t.vertices()[0].astype(np.float64) for t in tracks)
+    ref = igl.signed_distance(va[on_surface], vb, faces, sign_type=igl.SIGNED_DISTANCE_TYPE_WINDING_NUMBER)[0]
+    stored = dist[0][0, on_surface].astype(np.float64)
+    inside = ref < -1e-4
+    assert inside.sum() > 100 and -ref.min() > DISTANCE_BAND + 0.02  # deeper than the band
+    np.testing.assert_allclose(stored[inside], ref[inside], atol=2e-4)  # float16 storage
+    near_out = (ref > 1e-4) & (ref < DISTANCE_BAND - 1e-3)
+    np.testing.assert_allclose(stored[near_out], ref[near_out], atol=2e-4)
+    # the contract's penetration is the deepest vertex, not the band
+    assert penetration_depth(dist)[0] == pytest.approx(-ref.min(), abs=2e-4)
+
+
+def test_contact_corrections_ease_in_and_out(body_model):
+    """The contact correction's offsets ease over CONTACT_EASE_S at both ends of a contact
+    instead of switching in one frame: the hug's pelvises (whose gap the torso correction
+    closes) never accelerate like a jump. Before, hug seed 2's pelvises jumped 39 mm each in one
+    frame at each end of the embrace (8.8 m/s^2 at 15 fps; walking here stays under 3 m/s^2)."""
+    from dualhuman_builder.sim.scenes import _ease_out
+
+    # the easing itself: contact values carried onto the guard frames, fading to 0, continuously
+    frames = np.zeros(30, bool)
+    frames[10:20] = True
+    guard = np.zeros(30, bool)
+    guard[2:28] = True
+    guard &= ~frames
+    vals = np.where(frames, -0.08, 0.0)
+    eased = _ease_out(vals, frames, guard, ramp=6.0)
+    assert eased[9] == pytest.approx(-0.08 * (1 - (1 / 6) ** 3 * (10 - 15 / 6 + 6 / 36)))
+    assert eased[3] == 0.0 and eased[26] == 0.0 and (eased[~guard] == 0).all()
+    both = np.where(frames, vals, eased)
+    assert np.abs(np.diff(both)).max() < 0.03 and np.abs(np.diff(both, 2)).max() < 0.015
+    for seed in (0, 1):
+        sc = scene_of("hug", seed)
+        for track in sc.sequence.actors:
+            acc = np.linalg.norm(np.diff(np.array(track.transl), 2, axis=0), axis=1) * sc.sequence.fps**2
+            assert acc.max() < 5.0, f"seed {seed}: pelvis acceleration {acc.max():.1f} m/s^2 at frame {acc.argmax() + 1}"

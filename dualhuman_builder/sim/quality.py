@@ -6,6 +6,8 @@ All distances in metres, angles in degrees.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 #: Anatomical ranges of motion (degrees) of each bone the scenes move, relative to its parent,
@@ -122,3 +124,69 @@ def joint_limit_violations(track) -> dict[str, float]:
         if back > HYPEREXTENSION_DEG:
             out[f"{bone} hyperextension"] = back
     return out
+
+
+
+# ------------------------------------------------------------------ inside/outside by winding number
+#: Frames per call of the winding-number penetration query (bounds its pool of meshes).
+WINDING_CHUNK = 16
+
+
+@functools.lru_cache(maxsize=1)
+def _winding_term():
+    from dualhuman_builder.body.model import get_body_model
+    from dualhuman_builder.fit.collision import CollisionTerm
+
+    return CollisionTerm(get_body_model().faces, sign="winding")
+
+
+def winding_depths(verts_a: np.ndarray, verts_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How deep each vertex of one body lies inside the other, inside/outside decided by the
+    generalised winding number (:class:`~dualhuman_builder.fit.collision.CollisionTerm` with
+    ``sign="winding"``: exact depths, banded query plus sign flood fill).
+
+    ``verts_a``, ``verts_b``: ``(T, V, 3)`` metres (anny's topology). Returns ``depth_a (T, V)``
+    (a's vertices inside b; 0 outside), ``depth_b (T, V)`` (b inside a), float64 metres, and
+    ``queried (V,)`` bool: the vertices the query covers (the body surface: eyes and mouth
+    interior are never counted, see :func:`~dualhuman_builder.body.topology.collision_faces`).
+
+    Why not the pseudonormal sign of the scenes' banded distances: it is exact only on a closed
+    surface that does not cross itself, and a posed body does (an arm pressed into its own
+    torso, a shoulder folded at full elevation); there it may call an inside point outside or an
+    outside point inside (on the generated hug of seed 2 the pseudonormal ``CollisionTerm`` read
+    110 mm where the winding number reads 28 mm). The banded query also never sees a vertex
+    deeper than its band.
+    """
+    term = _winding_term()
+    va, vb = np.asarray(verts_a, np.float32), np.asarray(verts_b, np.float32)
+    depth_a, depth_b = np.zeros(va.shape[:2]), np.zeros(vb.shape[:2])
+    for s in range(0, len(va), WINDING_CHUNK):
+        r = term.penetration(va[s:s + WINDING_CHUNK], vb[s:s + WINDING_CHUNK])
+        depth_a[s:s + WINDING_CHUNK], depth_b[s:s + WINDING_CHUNK] = r["depth_a"], r["depth_b"]
+    queried = np.zeros(va.shape[1], dtype=bool)
+    queried[term.obstacle_vertices] = True
+    return depth_a, depth_b, queried
+
+
+def sign_by_winding(distances: tuple[np.ndarray, np.ndarray], verts_a: np.ndarray, verts_b: np.ndarray,
+                    frames=None) -> None:  # fmt: skip
+    """Give banded signed distances the winding number's inside/outside, in place.
+
+    ``distances``: ``(T, V)`` per actor (metres, negative inside, NaN beyond the band; any float
+    dtype), e.g. from :class:`~dualhuman_builder.contacts.distance.PairDistance` (pseudonormal
+    sign); ``verts_a``, ``verts_b`` ``(T, V, 3)`` metres; ``frames``: indices to fix (default
+    all). On the vertices :func:`winding_depths` covers, a vertex inside the other body gets
+    ``-depth`` (also when deeper than the band, where it was NaN) and one outside ``+|d|``;
+    magnitudes are unchanged (the closest surface point is the same).
+    """
+    frames = np.arange(len(verts_a)) if frames is None else np.asarray(frames, dtype=np.int64)
+    if not len(frames):
+        return
+    depth_a, depth_b, queried = winding_depths(np.asarray(verts_a)[frames], np.asarray(verts_b)[frames])
+    for d, depth in zip(distances, (depth_a, depth_b)):
+        x = d[frames].astype(np.float64)
+        inside = (depth > 0) & queried
+        outside = ~inside & queried & (x < 0)
+        x[inside] = -depth[inside]
+        x[outside] = -x[outside]
+        d[frames] = x.astype(d.dtype)

@@ -38,11 +38,20 @@ CONTACT_THRESHOLD = 0.02
 #: Largest palm move (m) per correction pass: far-off gaps are closed over several passes, so a
 #: palm never overshoots into the partner.
 MAX_CORRECTION_STEP = 0.02
+#: Time (s) over which a contact's correction eases in before its contact frames and out after
+#: them (on its guard frames), instead of switching on and off in one frame.
+CONTACT_EASE_S = 0.4
+#: Time (s) the torsos' correction is held at its contact-frame value after (and before) the
+#: embrace, before it eases: the arms, still wrapped when the torsos start to part, need it.
+TORSO_HOLD_S = 0.2
 #: Most contact-correction passes (each re-measures only the frames that have not settled).
 MAX_CORRECTION_PASSES = 14
 #: Band (m) within which signed distances are computed and stored; NaN beyond.
 DISTANCE_BAND = 0.05
 SCENE_VERSION = 1
+#: Bumped whenever the same parameters generate different scenes (cached scene stages recompute).
+#: 2: contact corrections ease in and out; inside/outside by the winding number.
+GENERATOR_VERSION = 2
 
 
 @dataclass
@@ -74,9 +83,10 @@ class ContactSpec:
     """A contact the correction enforces: ``actor``'s ``side`` palm against the partner (its
     ``partner_side`` palm, or its body when None), or with ``side`` None the two torsos (head,
     neck and trunk), whose gap the pelvises close or open. On ``frames (T,)`` the gap is brought to
-    :data:`CONTACT_GAP`; on ``guard (T,)`` frames (approach and release) only kept from closing
-    below it. Palms move along ``normal (T, 3)``, the direction from this palm towards the
-    partner surface; the per-frame offsets are smoothed so the correction adds no jerk."""
+    :data:`CONTACT_GAP`; on ``guard (T,)`` frames (approach and release) the correction eases in
+    and out over :data:`CONTACT_EASE_S` and only keeps the gap from closing below it. Palms move
+    along ``normal (T, 3)``, the direction from this palm towards the partner surface; the
+    per-frame offsets (m, ``(T,)``) are smoothed so the correction adds no jerk."""
 
     actor: int
     side: str | None  # None: the two torsos, corrected by moving both pelvises
@@ -87,6 +97,7 @@ class ContactSpec:
     offset: np.ndarray | None = field(default=None, repr=False)
     base: tuple | None = field(default=None, repr=False)
     settled: np.ndarray | None = field(default=None, repr=False)
+    floor: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -105,7 +116,8 @@ class Scene:
     """A generated scene: the sequence, ground-truth distances and the choreography's timing.
 
     ``distances[i]`` ``(T, V)`` float16: signed distance (m) of each vertex of actor ``i`` to the
-    other body's surface, negative inside, NaN beyond :data:`DISTANCE_BAND`; ``stance[i][side]``
+    other body's surface, negative inside (by the winding number, however deep), NaN farther
+    outside than :data:`DISTANCE_BAND`; ``stance[i][side]``
     ``(T,)`` bool: that foot is planted; ``phases``: name -> (start, end) seconds;
     ``contact_phases``: intervals (s) during which the bodies must touch.
     """
@@ -211,7 +223,7 @@ def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | Non
     _make_reachable(performers, chor, poses)
     poses = [p.solve(c) for p, c in zip(performers, chor.controls)]
     for it in range(MAX_CORRECTION_PASSES):
-        poses, worst, what = _correct_contacts(model, performers, chor, poses)
+        poses, worst, what = _correct_contacts(model, performers, chor, poses, params.fps)
         if log:
             log(f"contact correction pass {it + 1}: largest gap error {1000 * worst:.1f} mm ({what or 'none'})")
         if worst < 5e-4:
@@ -242,9 +254,14 @@ def _sequence(model, performers, poses, chor: Choreography, params: SceneParams)
 
 
 def ground_truth_distances(seq, frames=None, previous=None) -> tuple[np.ndarray, np.ndarray]:
-    """Signed vertex-to-body distances ``(T, V)`` float16 for both actors of ``seq`` (only
-    ``frames`` recomputed, the rest copied from ``previous``, when given)."""
+    """Signed vertex-to-body distances ``(T, V)`` float16 (m) for both actors of ``seq`` (only
+    ``frames`` recomputed, the rest copied from ``previous``, when given): the banded warp query
+    (pseudonormal sign, NaN beyond :data:`DISTANCE_BAND`), then inside/outside re-decided by the
+    generalised winding number (:func:`~dualhuman_builder.sim.quality.sign_by_winding`), which
+    stays right where a posed body crosses itself, and which also reports vertices deeper inside
+    than the band."""
     from dualhuman_builder.contacts.distance import get_pair_distance
+    from dualhuman_builder.sim.quality import sign_by_winding
 
     pair = get_pair_distance()
     va, vb = seq.actors[0].vertices(), seq.actors[1].vertices()
@@ -253,9 +270,11 @@ def ground_truth_distances(seq, frames=None, previous=None) -> tuple[np.ndarray,
         frames = range(len(va))
     else:
         da, db = previous[0].copy(), previous[1].copy()
+    frames = np.asarray(list(frames), dtype=np.int64)
     for f in frames:
         a, b = pair(va[f], vb[f], DISTANCE_BAND)
         da[f], db[f] = a, b
+    sign_by_winding((da, db), va, vb, frames)
     return da, db
 
 
@@ -266,12 +285,19 @@ def _rescale_time(c: Choreography, tempo: float) -> Choreography:
     return c
 
 
-def _correct_contacts(model, performers, chor: Choreography, poses):
+def _correct_contacts(model, performers, chor: Choreography, poses, fps: float = 30.0):
     """One pass of contact correction (see :class:`ContactSpec`): per frame, the gap between the
     palm and the partner (the smallest signed distance of either hand's vertices) is measured and
     the palm target moves along the contact normal by the gap error (both palms half of it for a
-    palm-to-palm contact). Offsets accumulate over passes and are smoothed in time. Returns the
-    re-solved poses, the largest gap error measured before this pass (m) and whose it was."""
+    palm-to-palm contact). Offsets accumulate over passes and are smoothed in time. On guard
+    frames the offset eases from the adjacent contact frames' offset to none over
+    :data:`CONTACT_EASE_S` (:func:`_ease_out`; ``fps`` converts it to frames), never below what
+    keeps the gap at :data:`CONTACT_GAP` there (``spec.floor``: the offset that each guard
+    frame's last measurement says would leave exactly that gap). Without the easing a contact's
+    correction switched on and off in one frame: the hug's pelvises closed their 76 mm
+    correction in one frame at each end of the embrace (39 mm each, at 15 fps), and on seed 2
+    the release left an arm 28 mm deep in the partner's shoulder. Returns the re-solved poses,
+    the largest gap error measured before this pass (m) and whose it was."""
     import roma
     import torch
     from scipy.ndimage import gaussian_filter1d
@@ -321,6 +347,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses):
         if spec.base is None:
             spec.base = (getattr(track, field_name).copy(), None if partner is None else getattr(partner, field_name).copy())
             spec.offset = np.zeros(T)
+            spec.floor = np.full(T, -np.inf)
         err = np.zeros(T)
         for k, f in enumerate(frames):
             if not act[f]:
@@ -340,14 +367,20 @@ def _correct_contacts(model, performers, chor: Choreography, poses):
             gap = min(gap, np.nanmin(d_theirs[theirs], initial=DISTANCE_BAND))
             err[f] = CONTACT_GAP - gap  # > 0: too close, move apart; < 0: too far, move together
         guard = (spec.guard if spec.guard is not None else np.zeros(T, bool)) & ~spec.frames
+        # guard frames measured now: the offset that would leave exactly CONTACT_GAP there, a
+        # lower bound on theirs (far ones: far below; re-measured every pass, so never stale)
+        measured = guard & act
+        spec.floor[measured] = (spec.offset + np.minimum(err, MAX_CORRECTION_STEP))[measured]
         err[guard] = np.maximum(err[guard], 0.0)
         spec_worst = max(float(np.abs(err[spec.frames]).max(initial=0.0)), float(err[guard].max(initial=0.0)))
         if spec_worst > worst:
             worst, worst_what = spec_worst, ("torsos" if torso else f"actor {spec.actor} {spec.side} palm")
         need = spec.offset + np.clip(err, -MAX_CORRECTION_STEP, MAX_CORRECTION_STEP)
+        hold = TORSO_HOLD_S * fps if torso else 0.0
+        need[guard] = np.maximum(_ease_out(need, spec.frames, guard, CONTACT_EASE_S * fps, hold), spec.floor)[guard]
         smooth = gaussian_filter1d(need, 1.0)
         smooth[spec.frames] = need[spec.frames]  # contact frames: exactly what each needs
-        smooth[guard] = np.maximum(smooth[guard], need[guard])
+        smooth[guard] = np.maximum(smooth[guard], spec.floor[guard])
         # a frame is settled when its gap was right and its offset barely moved
         settled = act & (np.abs(err) < 5e-4) & (np.abs(smooth - spec.offset) < 2e-4)
         spec.settled = settled if spec.settled is None else (spec.settled & (np.abs(smooth - spec.offset) < 2e-4)) | settled
@@ -357,6 +390,30 @@ def _correct_contacts(model, performers, chor: Choreography, poses):
         if partner is not None:
             getattr(partner, field_name)[:] = spec.base[1] + share * spec.offset[:, None] * spec.normal
     return [p.solve(c) for p, c in zip(performers, chor.controls)], worst, worst_what
+
+
+def _ease_out(values: np.ndarray, frames: np.ndarray, guard: np.ndarray, ramp: float, hold: float = 0.0) -> np.ndarray:
+    """``values (T,)`` on the ``frames (T,)`` mask carried onto the ``guard (T,)`` frames, held for
+    ``hold`` frames and then faded to 0 over ``ramp`` frames (minimum-jerk) from the nearest
+    contact frame on either side (a frame between two contact intervals blends both). Frames
+    outside ``guard`` get 0."""
+    from dualhuman_builder.sim.timeline import minjerk
+
+    T = len(values)
+    out = np.zeros(T)
+    idx = np.flatnonzero(frames)
+    if not len(idx) or not guard.any():
+        return out
+    g = np.flatnonzero(guard)
+    ramp = max(float(ramp), 1.0)
+    total, weight = np.zeros(len(g)), np.zeros(len(g))
+    k = np.searchsorted(idx, g)
+    for nearest, valid in ((idx[np.maximum(k - 1, 0)], k > 0), (idx[np.minimum(k, len(idx) - 1)], k < len(idx))):
+        w = np.where(valid, 1.0 - minjerk(np.maximum(np.abs(g - nearest) - hold, 0.0) / ramp), 0.0)
+        total += w * values[nearest]
+        weight += w
+    out[g] = total / np.maximum(weight, 1.0)
+    return out
 
 
 def _make_reachable(performers, chor: Choreography, poses, frac: float = 0.95) -> None:
