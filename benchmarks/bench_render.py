@@ -5,9 +5,10 @@ cached in ``benchmarks/results/render_hug_seed0_15fps.npz``; ``--sequence`` load
 InteractionSequence), ``--frames`` frames around its middle (the bodies in contact), a ring of
 ``--views`` cameras, ``--size`` square images, the default template (studio) and sample count.
 
-* **bare**: one :class:`SequenceRenderer` scene; per frame ``set_frame`` (vertex positions and
-  normals through ``mi.traverse``) and per view ``mi.render(scene, sensor=i)`` with the image
-  fetched to the host. Bodies are evaluated beforehand (not timed).
+* **bare**: a :class:`SequenceRenderer` scene built for the run; per frame ``set_frame`` (vertex
+  positions and normals through ``mi.traverse``) and per view ``mi.render(scene, sensor=i)`` with
+  the image fetched to the host. Bodies are evaluated beforehand (not timed). It is released
+  before the pipeline run, so that each run has one scene alive (see :func:`compare`).
 * **pipeline**: :func:`render_sequence` on the same frames: body evaluation, RGB, depth and mask
   pass, keypoints and visibility, PNG/EXR encoding on the thread pool, resume markers, the
   per-render files. Its figure is the ``images_per_s`` it records (renderer construction
@@ -93,20 +94,29 @@ def bare_loop(renderer, verts) -> tuple[float, float]:
     return n / (time.perf_counter() - t), (time.process_time() - c) / n
 
 
-def compare(renderer, seq, verts, cams, spp, variant, repeats: int, workers: int | None = None) -> tuple[list, list, dict]:
+def compare(make, seq, verts, cams, spp, variant, repeats: int, workers: int | None = None) -> tuple[list, list, dict]:
     """Alternating runs of the bare loop and of render_sequence (so that load from other
     processes hits both alike), after a warm-up of each; returns both lists of
-    ``(images/s, CPU seconds per image)``."""
+    ``(images/s, CPU seconds per image)``.
+
+    One Mitsuba scene is alive during each timed run: the bare loop's renderer (``make()``) is
+    built for its run, warmed on one frame and released before the pipeline builds its own. With a
+    second scene resident a render is slower (on the H100: 77 -> 70 images/s for the bare loop;
+    Dr.Jit's instance registry, which its virtual calls dispatch over, then holds both scenes'
+    shapes and BSDFs — our reading, not verified), and earlier versions of this bench kept the
+    bare loop's scene alive while the pipeline ran, charging that to the pipeline."""
     from dualhuman_builder.render.stage import render_sequence
 
     quiet = lambda s: None  # noqa: E731
     bare, full, doc = [], [], {}
     with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
-        bare_loop(renderer, [v[:1] for v in verts])  # warm-up: JIT compilation
         render_sequence(sub_sequence(seq, [0]), Path(tmp) / "warm", cams, spp=spp, variant=variant, log=quiet)
         for r in range(repeats):
             gc.collect()  # the previous run's renderer is released before, not during, a timed run
+            renderer = make()
+            bare_loop(renderer, [v[:1] for v in verts])  # warm-up: a new scene's first render
             bare.append(bare_loop(renderer, verts))
+            del renderer
             gc.collect()
             doc = render_sequence(seq, Path(tmp) / f"run{r}", cams, spp=spp, variant=variant, log=quiet, workers=workers)
             full.append((doc["images_per_s"], doc["cpu_seconds"] / doc["images"]))
@@ -312,20 +322,31 @@ def main(argv=None):
     cams = stage_cameras(sub, views=args.views, size=args.size)
     model = get_body_model()
     uv = body_model_uvs(model)
+
+    def make():
+        return SequenceRenderer(model.faces, model.num_vertices, cams, spp=spp, variant=args.variant, uv=uv[0], face_uv=uv[1])
+
     t = time.perf_counter()
-    renderer = SequenceRenderer(model.faces, model.num_vertices, cams, spp=spp, variant=args.variant, uv=uv[0], face_uv=uv[1])
+    renderer = make()
     build_s = time.perf_counter() - t
     variant = renderer.variant
     print(f"{variant} (Mitsuba {renderer.mitsuba_version}), {platform.machine()}, {args.size}x{args.size}, {spp} spp, "
           f"{args.views} views x {args.frames} frames, template {renderer.template.name}, median of {args.repeats}")  # fmt: skip
     print(f"scene build (once per sequence): {build_s:.2f} s")
+    del renderer  # one scene alive at a time (see compare)
+    gc.collect()
     res = [a.compute(frames=np.arange(sub.num_frames)) for a in sub.actors]
-    bare_runs, full_runs, doc = compare(renderer, sub, [res[0]["vertices"], res[1]["vertices"]], cams, spp, args.variant,
+    bare_runs, full_runs, doc = compare(make, sub, [res[0]["vertices"], res[1]["vertices"]], cams, spp, args.variant,
                                         args.repeats, args.workers)  # fmt: skip
     bare, full = statistics.median(r[0] for r in bare_runs), statistics.median(r[0] for r in full_runs)
     bare_cpu, full_cpu = statistics.median(r[1] for r in bare_runs), statistics.median(r[1] for r in full_runs)
     enc = encode_ms(args.size)
-    steps = breakdown(renderer, sub) if args.diagnose else {}  # renders the whole sequence again
+    steps = {}
+    if args.diagnose:  # renders the whole sequence again
+        renderer = make()
+        steps = breakdown(renderer, sub)
+        del renderer
+        gc.collect()
     if args.profile:
         profile_pipeline(sub, cams, spp, args.variant, args.workers)
     if args.diagnose:
@@ -341,7 +362,6 @@ def main(argv=None):
     print("encoding one view on one thread, ms: " + ", ".join(f"{k} {v}" for k, v in enc.items()))
     if steps:
         print("main thread per image, steps alone, ms: " + ", ".join(f"{k} {v}" for k, v in steps.items()))
-    del renderer
     result = {"variant": variant, "mitsuba": doc.get("mitsuba"), "size": args.size, "spp": spp, "views": args.views,
               "frames": args.frames, "repeats": args.repeats, "template": doc.get("template"), "scene_build_s": round(build_s, 2),
               "bare_images_per_s": round(bare, 3), "pipeline_images_per_s": round(full, 3), "ratio": round(ratio, 3),
