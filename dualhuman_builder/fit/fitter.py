@@ -24,7 +24,8 @@ one where the bodies moved too little to change them (the same answer wherever t
 is well defined; see :mod:`~dualhuman_builder.fit.collision`). A collision pass whose line search steps
 to non-finite corrections is undone and listed in the summary (``collision_diverged``); so is one
 that leaves the window's deepest frame deeper than the best pass before it (``collision_worsened``):
-the rounds stop there instead of weighting the term up again.
+the next round starts again from the best answer, so the rounds never leave a window deeper than
+the skeleton pass did.
 """
 
 # ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
@@ -252,7 +253,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     collided_frames = 0
     rounds_used = 0
     diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
-    worsened: list[str] = []  # collision passes that left the deepest frame deeper (undone)
+    worsened: list[str] = []  # collision passes that left the deepest frame deeper than the best (undone)
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
@@ -337,16 +338,16 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
                 rounds_used = max(rounds_used, _round + 1)
                 if left.max() > best[0]:
-                    # deeper than before this round (the data pull the bodies into each other harder than
-                    # the term, weighted up, can hold them apart: an ill-conditioned pass): weighting up
-                    # again makes it worse, so keep the best round's answer and stop
+                    # deeper than the best round so far (the data pull the bodies into each other harder
+                    # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
+                    # the next round starts again from the best answer, with the term weighted up
                     _restore(params, best[1])
                     worsened.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}: "
                                     f"{1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")  # fmt: skip
-                    break
-                best = (float(left.max()), [p.detach().clone() for p in params])
-                if left.max() <= cfg.collision_tolerance_m:
-                    break
+                else:
+                    best = (float(left.max()), [p.detach().clone() for p in params])
+                    if left.max() <= cfg.collision_tolerance_m:
+                        break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
                 weight *= 4.0
         for k in range(len(acts)):  # overlapping frames take the later window's answer

@@ -144,8 +144,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         for where in res.summary.get("collision_diverged", []):
             log(f"WARNING: the collision pass diverged ({where}) and was undone; those frames may still overlap")
         for where in res.summary.get("collision_worsened", []):
-            log(f"WARNING: a collision pass left the bodies deeper in each other ({where}) and was undone; "
-                "those frames may still overlap")
+            log(f"WARNING: a collision pass left the bodies deeper in each other ({where}) and was undone")
         if without:
             log(f"WARNING: fitted without trackers: {without} (the suit's position drift remains)")
         return summary
