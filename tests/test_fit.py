@@ -121,19 +121,26 @@ def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
         assert any(w.startswith(f"{name}: heading") and f"{std:.1f} deg" in w for w in warned), warned
 
 
+def _overlapping_pair(T: int) -> list:
+    """Fit inputs of two actors in the rest pose for ``T`` frames, pelvises 5 cm apart (the bodies
+    overlap, so the collision pass runs), no trackers."""
+    from dualhuman_builder.fit.fitter import ActorInput
+
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
+    pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
+    return [ActorInput(name, {}, quat, pelvis + [dx, 0, 0], np.ones(T, bool), np.zeros((T, 0, 3)), np.zeros((T, 0), bool),
+                       np.zeros(0, np.int64), np.zeros((0, 3)), np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
+            for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
+
+
 def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch):
     """Two bodies on one spot: the collision pass runs. If its loss turns non-finite, the line
     search steps to NaN corrections; the fitter undoes the pass and reports it, never returning
     NaN bodies or crashing."""
     from dualhuman_builder.fit import collision
-    from dualhuman_builder.fit.fitter import ActorInput
 
     T = 4
-    quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
-    pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
-    inputs = [ActorInput(name, {}, quat, pelvis + [dx, 0, 0], np.ones(T, bool), np.zeros((T, 0, 3)), np.zeros((T, 0), bool),
-                         np.zeros(0, np.int64), np.zeros((0, 3)), np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
-              for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
+    inputs = _overlapping_pair(T)
     cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2)
     healthy = fit_actors(model, inputs, 15.0, cfg)
     assert healthy.summary["collision_frames"] == T and healthy.summary["collision_diverged"] == []
@@ -160,14 +167,9 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     (Seen on a take whose trackers pull the bodies into each other; here the depth read after the
     first pass is read as 10 mm deeper than before it.)"""
     from dualhuman_builder.fit import collision
-    from dualhuman_builder.fit.fitter import ActorInput
 
     T = 2
-    quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
-    pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
-    inputs = [ActorInput(name, {}, quat, pelvis + [dx, 0, 0], np.ones(T, bool), np.zeros((T, 0, 3)), np.zeros((T, 0), bool),
-                         np.zeros(0, np.int64), np.zeros((0, 3)), np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
-              for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
+    inputs = _overlapping_pair(T)
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2)
     real = collision.CollisionTerm.penetration
     calls, seen = [], []
