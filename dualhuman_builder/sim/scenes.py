@@ -291,7 +291,8 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float =
     the palm target moves along the contact normal by the gap error (both palms half of it for a
     palm-to-palm contact). Offsets accumulate over passes and are smoothed in time. On guard
     frames the offset eases from the adjacent contact frames' offset to none over
-    :data:`CONTACT_EASE_S` (:func:`_ease_out`; ``fps`` converts it to frames), never below what
+    :data:`CONTACT_EASE_S` (:func:`_ease_out`; ``fps`` converts it to frames; the torsos' offset is
+    first held for :data:`TORSO_HOLD_S`), never below what
     keeps the gap at :data:`CONTACT_GAP` there (``spec.floor``: the offset that each guard
     frame's last measurement says would leave exactly that gap). Without the easing a contact's
     correction switched on and off in one frame: the hug's pelvises closed their 76 mm
