@@ -341,15 +341,14 @@ def main(argv=None):
     bare, full = statistics.median(r[0] for r in bare_runs), statistics.median(r[0] for r in full_runs)
     bare_cpu, full_cpu = statistics.median(r[1] for r in bare_runs), statistics.median(r[1] for r in full_runs)
     enc = encode_ms(args.size)
+    if args.profile:
+        profile_pipeline(sub, cams, spp, args.variant, args.workers)
     steps = {}
-    if args.diagnose:  # renders the whole sequence again
+    if args.diagnose:  # the steps alone (a renderer of its own, released after), then inside the pipeline
         renderer = make()
         steps = breakdown(renderer, sub)
         del renderer
         gc.collect()
-    if args.profile:
-        profile_pipeline(sub, cams, spp, args.variant, args.workers)
-    if args.diagnose:
         diagnose(sub, cams, spp, args.variant, args.workers, args.repeats)
     ratio = full / bare
     ratio_cpu = bare_cpu / full_cpu

@@ -285,7 +285,7 @@ def _rescale_time(c: Choreography, tempo: float) -> Choreography:
     return c
 
 
-def _correct_contacts(model, performers, chor: Choreography, poses, fps: float = 30.0):
+def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     """One pass of contact correction (see :class:`ContactSpec`): per frame, the gap between the
     palm and the partner (the smallest signed distance of either hand's vertices) is measured and
     the palm target moves along the contact normal by the gap error (both palms half of it for a
