@@ -9,19 +9,18 @@ How a frame is computed (exact: within the band, equal to one ``igl.signed_dista
 every vertex against the whole closed mesh, and labels equal to that call's without a band, which
 ``tests/test_contacts.py`` checks to 1e-9 m):
 
-1. **Broad phase.** Each body region is cut once (at the rest pose) into patches of <= 16
-   vertices, grouped into coarse patches of <= 64. Per frame, a *query* box per patch holds its
-   vertices; a *target* box per patch holds its faces (a face belongs to the patch of the majority
-   of its vertices), so every point of the surface lies in some target box. A frame whose
-   whole-body boxes are farther apart than the band is skipped with no query at all. Otherwise
-   coarse query/target pairs within the band are found, then the fine pairs inside them; only
-   the vertices of query patches in some pair are queried. Any vertex left out is farther than
-   the band from the other surface.
-2. **Sub-mesh.** Those vertices are queried against only the faces of target patches in some
-   pair. This holds the closest face of every vertex within the band and every face around its
-   closest vertex or edge (they all contain a point within the band), so libigl finds the same
-   closest point with the same pseudonormal sign. ``igl`` rebuilds its AABB tree and normals on
-   every call (about 2 us per face), which on the whole 26,692-face body dominates the cost.
+1. **Broad phase.** A frame whose whole-body boxes are farther apart than the band is skipped
+   with no query at all; otherwise only vertices inside the other body's box grown by the band go on.
+2. **Narrow phase** (:mod:`dualhuman_builder.contacts.narrow`). A warp BVH of each body, built once
+   at the rest pose and refit per frame, picks in one float32 pass the vertices within the band
+   (plus a 10 um slack) and every face that may lie within a picked vertex's distance (plus the
+   slack) of it. libigl then computes those vertices' distances against that sub-mesh only. It
+   holds the closest face of every vertex within the band and every face around its closest vertex
+   or edge (they all contain the closest point), so libigl finds the same closest point with the
+   same pseudonormal sign as on the whole mesh. ``igl`` rebuilds its AABB tree and normals on
+   every call (about 2 us per face) and spends about 5 us per point within the band; on the whole
+   26,692-face body the rebuild alone dominated (a hug's contact frames: ~100 ms per frame pair
+   with a box-patch broad phase that left ~13,000 faces per direction, ~45 ms with this one).
 3. **Deep penetration.** ``igl`` returns NaN for points farther than the band on either side, so
    a vertex more than ``band_m`` inside the other body would come back NaN. Such vertices are
    found by a flood fill over the query body's edges: from a vertex inside within the band, across
@@ -50,12 +49,16 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+
+from dualhuman_builder.contacts.narrow import NearSelector
 
 DEFAULT_THRESHOLD_M = 0.02
 DEFAULT_BAND_M = 0.05
@@ -64,41 +67,15 @@ CONTACT_RESULT_VERSION = 1
 
 
 # ============================================================================ mesh topology
-def _bisect(points: np.ndarray, idx: np.ndarray, fine: int, coarse: int, out: list, parent: list,
-            cid: int | None = None) -> None:  # fmt: skip
-    """Split ``idx`` at the median of its points' longest box axis down to groups of <= ``fine``
-    (appended to ``out`` in depth-first order); the first ancestor with <= ``coarse`` points names
-    the coarse group (``parent``) of every leaf under it, so a coarse group's leaves are contiguous."""
-    if cid is None and len(idx) <= coarse:
-        cid = (max(parent) + 1) if parent else 0
-    if len(idx) <= fine:
-        out.append(idx)
-        parent.append(cid)
-        return
-    p = points[idx]
-    axis = int(np.argmax(p.max(0) - p.min(0)))
-    order = idx[np.argsort(p[:, axis], kind="stable")]
-    half = len(order) // 2
-    _bisect(points, order[:half], fine, coarse, out, parent, cid)
-    _bisect(points, order[half:], fine, coarse, out, parent, cid)
-
-
-def _starts(lengths) -> np.ndarray:
-    lengths = np.asarray(lengths, dtype=np.int64)
-    return np.cumsum(lengths) - lengths
-
-
 @dataclass(frozen=True, eq=False)
 class ContactTopology:
     """Index arrays for one mesh topology, shared by both bodies, built once.
 
     ``faces (F, 3)`` int64: the closed target mesh (for anny, its body component); ``num_vertices``
     V; ``vertex_region (V,)`` region index per vertex; ``region_names (R,)``; ``reference_vertices
-    (V, 3)`` metres, any pose (the rest pose for anny), used only to cut each region into compact
-    **patches**: median splits along the longest axis down to ``patch_vertices`` vertices, grouped
-    into coarse patches of at most ``coarse_vertices`` (a two-level hierarchy of boxes).
-    Derived: ``face_region (F,)`` and ``face_patch (F,)``, the majority region / patch of each face's
-    vertices (the first vertex's on a three-way tie); ``vertex_patch (V,)``.
+    (V, 3)`` metres, any pose (the rest pose for anny): the warp BVHs of the narrow phase are built
+    there and refit per frame. Derived: ``face_region (F,)``, the majority region of each face's
+    vertices (the first vertex's on a three-way tie), and the unique edges (for the flood fill).
     """
 
     faces: np.ndarray
@@ -106,12 +83,8 @@ class ContactTopology:
     vertex_region: np.ndarray
     region_names: tuple[str, ...]
     reference_vertices: np.ndarray = field(repr=False)
-    patch_vertices: int = 16
-    coarse_vertices: int = 64
     face_region: np.ndarray = field(init=False, repr=False)
-    vertex_patch: np.ndarray = field(init=False, repr=False)
-    face_patch: np.ndarray = field(init=False, repr=False)
-    _ix: dict = field(init=False, repr=False)  # index arrays, see __post_init__
+    edges: np.ndarray = field(init=False, repr=False)  # (E, 2) int64, unique, sorted per row
 
     def __post_init__(self):
         faces = np.asarray(self.faces)
@@ -134,55 +107,19 @@ class ContactTopology:
         ref = np.asarray(self.reference_vertices, dtype=np.float64)
         if ref.shape != (V, 3) or not np.isfinite(ref).all():
             raise ValueError(f"reference_vertices must be finite with shape ({V}, 3), got {ref.shape}")
-        if not 1 <= int(self.patch_vertices) <= int(self.coarse_vertices):
-            raise ValueError(f"need 1 <= patch_vertices ({self.patch_vertices}) <= coarse_vertices "
-                             f"({self.coarse_vertices})")  # fmt: skip
         region = region.astype(np.int64)
-        patches: list[np.ndarray] = []
-        coarse_of: list[int] = []
-        for r in np.unique(region):
-            _bisect(ref, np.flatnonzero(region == r), int(self.patch_vertices), int(self.coarse_vertices), patches,
-                    coarse_of)  # fmt: skip
-        coarse_of = np.array(coarse_of)
-        vertex_patch = np.empty(V, dtype=np.int64)
-        for k, idx in enumerate(patches):
-            vertex_patch[idx] = k
-
-        def majority(label):
-            a, b, c = label[faces[:, 0]], label[faces[:, 1]], label[faces[:, 2]]
-            return np.where((b == c) & (a != b), b, a)
-
-        face_patch = majority(vertex_patch)
-        # target patches: those owning faces (a patch of only eye or mouth vertices owns none)
-        t_patches, face_target = np.unique(face_patch, return_inverse=True)
-        by_target = np.argsort(face_target, kind="stable")
-        t_groups = [np.unique(g) for g in np.split(faces[by_target], np.cumsum(np.bincount(face_target))[:-1])]
-        t_coarse_len = np.unique(coarse_of[t_patches], return_counts=True)[1]  # t_patches sorted: contiguous
-        q_coarse_len = np.unique(coarse_of, return_counts=True)[1]
+        a, b, c = region[faces[:, 0]], region[faces[:, 1]], region[faces[:, 2]]
         e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        ix = {
-            "q_index": np.concatenate(patches), "q_starts": _starts([len(g) for g in patches]),
-            "q_len": np.array([len(g) for g in patches]),
-            "qc_starts": _starts(q_coarse_len), "qc_len": q_coarse_len,
-            "t_index": np.concatenate(t_groups), "t_starts": _starts([len(g) for g in t_groups]),
-            "tc_starts": _starts(t_coarse_len), "tc_len": t_coarse_len,
-            "face_target": face_target,
-            "edges": np.unique(np.sort(e, axis=1), axis=0),
-        }  # fmt: skip
         for k, v in (("faces", faces), ("num_vertices", V), ("vertex_region", region), ("region_names", names),
-                     ("reference_vertices", ref), ("face_region", majority(region)), ("vertex_patch", vertex_patch),
-                     ("face_patch", face_patch), ("_ix", ix)):  # fmt: skip
+                     ("reference_vertices", ref), ("face_region", np.where((b == c) & (a != b), b, a)),
+                     ("edges", np.unique(np.sort(e, axis=1), axis=0))):  # fmt: skip
             object.__setattr__(self, k, v)
 
-    @property
-    def num_patches(self) -> int:
-        return len(self._ix["q_starts"])
-
     @classmethod
-    def for_model(cls, model=None, regions=None, patch_vertices: int = 16, coarse_vertices: int = 64) -> "ContactTopology":
+    def for_model(cls, model=None, regions=None) -> "ContactTopology":
         """The topology of the anny ``model`` (default: the process-wide one): its body component
         (:func:`~dualhuman_builder.body.topology.collision_faces`), ``regions`` (default
-        :func:`~dualhuman_builder.body.regions.load_regions`) and patches cut at the rest pose."""
+        :func:`~dualhuman_builder.body.regions.load_regions`) and the rest pose."""
         from dualhuman_builder.body.model import get_body_model
         from dualhuman_builder.body.regions import load_regions
         from dualhuman_builder.body.topology import collision_faces
@@ -192,21 +129,21 @@ class ContactTopology:
         regions = regions or load_regions(model)
         rest = model.rest().vertices[0].detach().cpu().numpy()
         return cls(faces[collision_faces(faces, model.num_vertices)], model.num_vertices, regions.vertex_region,
-                   regions.names, rest, patch_vertices, coarse_vertices)  # fmt: skip
+                   regions.names, rest)  # fmt: skip
 
-    def boxes(self, X: np.ndarray) -> dict[str, np.ndarray]:
-        """Boxes of one body's vertices ``X (V, 3)``: as query (``q``: fine patches of its
-        vertices, ``qc``: coarse) and as target (``t``, ``tc``: the same over each patch's faces,
-        so that they hold the whole surface). Each ``(N, 2, 3)`` lo/hi."""
-        ix = self._ix
-        out = {}
-        for key, index, starts in (("q", ix["q_index"], ix["q_starts"]), ("t", ix["t_index"], ix["t_starts"])):
-            G = X[index]
-            lo, hi = np.minimum.reduceat(G, starts, axis=0), np.maximum.reduceat(G, starts, axis=0)
-            c = ix[key + "c_starts"]
-            out[key] = (lo, hi)
-            out[key + "c"] = (np.minimum.reduceat(lo, c, axis=0), np.maximum.reduceat(hi, c, axis=0))
-        return out
+
+_LOCAL = threading.local()
+
+
+def _selector(topo: ContactTopology) -> NearSelector:
+    """This thread's :class:`NearSelector` for ``topo`` (built on first use: ~10 ms)."""
+    cache = getattr(_LOCAL, "selectors", None)
+    if cache is None:
+        cache = _LOCAL.selectors = weakref.WeakKeyDictionary()
+    sel = cache.get(topo)
+    if sel is None:
+        sel = cache[topo] = NearSelector(topo.faces, topo.reference_vertices)
+    return sel
 
 
 # ============================================================================ result
@@ -299,73 +236,28 @@ class ContactResult:
 
 
 # ============================================================================ one frame
-def _overlap(alo, ahi, blo, bhi, pad: float) -> np.ndarray:
-    """``(Na, Nb)`` bool: box a grown by ``pad`` overlaps box b (boxes ``(N, 3)`` lo and hi).
-    Per axis: ``np.all`` over a length-3 axis is several times slower than two ``&``."""
-    out = (alo[:, None, 0] <= bhi[None, :, 0] + pad) & (ahi[:, None, 0] >= blo[None, :, 0] - pad)
-    for k in (1, 2):
-        out &= alo[:, None, k] <= bhi[None, :, k] + pad
-        out &= ahi[:, None, k] >= blo[None, :, k] - pad
-    return out
+def _select(topo: ContactTopology, A: np.ndarray, B: np.ndarray, band: float, selector: NearSelector):
+    """The narrow phase of one frame (warp; no libigl): None when the bodies' whole boxes are
+    farther apart than ``band``, else per direction (A against B, B against A) the vertex indices
+    libigl must answer and the other body's faces it needs, ``((keep_a, faces_b), (keep_b, faces_a))``."""
+    lo_a, hi_a, lo_b, hi_b = A.min(0), A.max(0), B.min(0), B.max(0)
+    if np.any(lo_a > hi_b + band) or np.any(lo_b > hi_a + band):
+        return None  # whole bodies (all vertices) farther apart than the band
+    return selector.select(1, A, B, band), selector.select(0, B, A, band)
 
 
-def _inside(x, lo, hi) -> np.ndarray:
-    """``(N,)`` bool: point or box ``x`` (``(N, 3)``; a box as ``(xlo, xhi)``) overlaps box ``lo, hi`` ``(N, 3)``."""
-    xlo, xhi = x if isinstance(x, tuple) else (x, x)
-    out = (xhi[:, 0] >= lo[:, 0]) & (xlo[:, 0] <= hi[:, 0])
-    for k in (1, 2):
-        out &= xhi[:, k] >= lo[:, k]
-        out &= xlo[:, k] <= hi[:, k]
-    return out
-
-
-def _near(ba: dict, bb: dict, band: float) -> bool:
-    """Whether the whole-body boxes of two bodies (from :meth:`ContactTopology.boxes`) come
-    within ``band`` of each other."""
-    def near(q, t):
-        return bool(np.all(q[0].min(0) <= t[1].max(0) + band) and np.all(q[1].max(0) >= t[0].min(0) - band))
-
-    return near(ba["qc"], bb["tc"]) or near(bb["qc"], ba["tc"])
-
-
-def _ranges(starts: np.ndarray, lens: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Concatenated ``starts[g] + arange(lens[g])`` over ``groups``, and the position in
-    ``groups`` each element comes from."""
-    n = lens[groups]
-    owner = np.repeat(np.arange(len(groups)), n)
-    return starts[groups][owner] + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n), owner
-
-
-def _query(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, pbox: dict, qbox: dict, band: float, counts: dict):
-    """Signed distances ``(V,)`` of the vertices ``P`` to the surface of ``Q`` (NaN: farther than
-    ``band`` or not queried) and the closest face ``(V,)`` (index into ``topo.faces``, -1 where NaN).
-    ``pbox``, ``qbox``: :meth:`ContactTopology.boxes` of ``P`` and ``Q``."""
+def _query(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, keep: np.ndarray, fidx: np.ndarray, band: float,
+           counts: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Signed distances ``(V,)`` of the vertices ``P[keep]`` to the faces ``fidx`` of ``Q``
+    (libigl; NaN farther than ``band`` and elsewhere) and the closest face ``(V,)`` (index into
+    ``topo.faces``, -1 where the distance is NaN)."""
     import igl
 
-    ix = topo._ix
     V = topo.num_vertices
     d = np.full(V, np.nan)
     face = np.full(V, -1, dtype=np.int64)
-    (qlo, qhi), (tlo, thi) = pbox["qc"], qbox["tc"]
-    # coarse patches near the other body's whole box, then coarse pairs, then their fine pairs
-    iq = np.flatnonzero(_overlap(qlo, qhi, tlo.min(0, keepdims=True), thi.max(0, keepdims=True), band)[:, 0])
-    it = np.flatnonzero(_overlap(tlo, thi, qlo.min(0, keepdims=True), qhi.max(0, keepdims=True), band)[:, 0])
-    pi, pj = np.nonzero(_overlap(qlo[iq], qhi[iq], tlo[it], thi[it], band))
-    if not len(pi):
-        return d, face
-    fq, own = _ranges(ix["qc_starts"], ix["qc_len"], iq[pi])
-    ft, own2 = _ranges(ix["tc_starts"], ix["tc_len"], it[pj][own])
-    fq = fq[own2]
-    (qlo, qhi), (tlo, thi) = pbox["q"], qbox["t"]
-    ok = _inside((qlo[fq] - band, qhi[fq] + band), tlo[ft], thi[ft])
-    q_on = np.zeros(len(qlo), dtype=bool)
-    q_on[fq[ok]] = True
-    t_on = np.zeros(len(tlo), dtype=bool)
-    t_on[ft[ok]] = True
-    keep = np.flatnonzero(q_on[topo.vertex_patch])
     if not len(keep):
         return d, face
-    fidx = np.flatnonzero(t_on[ix["face_target"]])
     sub = topo.faces[fidx]
     used = np.zeros(V, dtype=bool)
     used[sub.ravel()] = True
@@ -382,13 +274,35 @@ def _query(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, pbox: dict, qbox
     return d, face
 
 
+def _finish(topo: ContactTopology, A: np.ndarray, B: np.ndarray, selection, band: float, counts: dict):
+    """libigl and the flood fill on one frame's :func:`_select` result: ``(distances (2, V),
+    faces (2, V))`` as :func:`contact_frame` returns them."""
+    (keep_a, faces_b), (keep_b, faces_a) = selection
+    d_a, f_a = _query(topo, A, B, keep_a, faces_b, band, counts)
+    d_b, f_b = _query(topo, B, A, keep_b, faces_a, band, counts)
+    counts["deep_vertices"] += _flood_deep(topo, A, d_a, band) + _flood_deep(topo, B, d_b, band)
+    return np.stack([d_a, d_b]), np.stack([f_a, f_b])
+
+
+def _as_frame(topo: ContactTopology, verts_a, verts_b) -> tuple[np.ndarray, np.ndarray]:
+    A = np.ascontiguousarray(verts_a, dtype=np.float64)
+    B = np.ascontiguousarray(verts_b, dtype=np.float64)
+    V = topo.num_vertices
+    for name, X in (("verts_a", A), ("verts_b", B)):
+        if X.shape != (V, 3):
+            raise ValueError(f"{name} must have shape ({V}, 3), got {X.shape}")
+        if not np.isfinite(X).all():
+            raise ValueError(f"{name} holds NaN or infinite coordinates")
+    return A, B
+
+
 def _flood_deep(topo: ContactTopology, P: np.ndarray, d: np.ndarray, band: float) -> int:
     """Set ``d`` to -inf on vertices more than ``band`` inside (see the module docstring);
     returns how many."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    e = topo._ix["edges"]
+    e = topo.edges
     neg, far = d < 0, np.isnan(d)
     if not neg.any():
         return 0
@@ -460,43 +374,24 @@ def contact_frame(topology: ContactTopology, verts_a: np.ndarray, verts_b: np.nd
                   counts: dict | None = None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
     """Both directions of one frame: ``(distances (2, V) float64, faces (2, V) int64)``, row 0 the
     vertices of A against B's surface, row 1 B against A's. Distances in metres, negative inside,
-    NaN farther than ``band_m`` (or never queried), ``-inf`` inside deeper than ``band_m``;
-    faces: the closest face (index into ``topology.faces``), -1 where the distance is not finite.
-    None when the bodies' boxes are farther apart than ``band_m`` (no query made). ``counts``
-    (optional) accumulates ``queried_vertices``, ``queried_faces`` and ``deep_vertices``."""
-    A = np.ascontiguousarray(verts_a, dtype=np.float64)
-    B = np.ascontiguousarray(verts_b, dtype=np.float64)
-    V = topology.num_vertices
-    for name, X in (("verts_a", A), ("verts_b", B)):
-        if X.shape != (V, 3):
-            raise ValueError(f"{name} must have shape ({V}, 3), got {X.shape}")
-        if not np.isfinite(X).all():
-            raise ValueError(f"{name} holds NaN or infinite coordinates")
+    NaN farther than ``band_m``, ``-inf`` inside deeper than ``band_m``; faces: the closest face
+    (index into ``topology.faces``), -1 where the distance is not finite. None when the bodies'
+    boxes are farther apart than ``band_m`` (no query made). ``counts`` (optional) accumulates
+    ``queried_vertices``, ``queried_faces`` (those libigl was given) and ``deep_vertices``."""
+    A, B = _as_frame(topology, verts_a, verts_b)
     counts = counts if counts is not None else {}
     for k in ("queried_vertices", "queried_faces", "deep_vertices"):
         counts.setdefault(k, 0)
-    lo_a, hi_a, lo_b, hi_b = A.min(0), A.max(0), B.min(0), B.max(0)
-    if np.any(lo_a > hi_b + band_m) or np.any(lo_b > hi_a + band_m):
-        return None  # whole bodies (all vertices) farther apart than the band
-    ba, bb = topology.boxes(A), topology.boxes(B)
-    if not _near(ba, bb, band_m):
-        return None
-    d_a, f_a = _query(topology, A, B, ba, bb, band_m, counts)
-    d_b, f_b = _query(topology, B, A, bb, ba, band_m, counts)
-    counts["deep_vertices"] += _flood_deep(topology, A, d_a, band_m) + _flood_deep(topology, B, d_b, band_m)
-    return np.stack([d_a, d_b]), np.stack([f_a, f_b])
+    selection = _select(topology, A, B, band_m, _selector(topology))
+    return None if selection is None else _finish(topology, A, B, selection, band_m, counts)
 
 
-def _frame_result(topo: ContactTopology, A, B, threshold: float, band: float):
-    """One frame as the sequence loop stores it: ``((labels (2, V), distances (2, V) float16,
-    region pairs) or None when far apart, counts)``."""
-    counts: dict = {}
-    frame = contact_frame(topo, A, B, band, counts)
-    if frame is None:
-        return None, counts
+def _frame_result(topo: ContactTopology, frame, threshold: float):
+    """One frame as the sequence loop stores it: ``(labels (2, V), distances (2, V) float16,
+    region pairs)`` from :func:`_finish`'s ``frame``."""
     (d_a, d_b), (f_a, f_b) = frame
     labels = np.stack([d_a < threshold, d_b < threshold])  # NaN compares False, -inf True
-    return (labels, np.stack([d_a, d_b]).astype(np.float16), _frame_pairs(topo, d_a, f_a, d_b, f_b, threshold)), counts
+    return labels, np.stack([d_a, d_b]).astype(np.float16), _frame_pairs(topo, d_a, f_a, d_b, f_b, threshold)
 
 
 # ============================================================================ sequences
@@ -574,14 +469,16 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     far_frames = done = 0
     frames = np.flatnonzero(finite)
     step = max(1, math.ceil(len(frames) / 10))
+
+    selector = _selector(topo)
     for t in frames:
-        frame, c = _frame_result(topo, verts_a[t], verts_b[t], threshold, band)
-        for k, v in c.items():
-            counts[k] += v
-        if frame is None:
+        A, B = _as_frame(topo, verts_a[t], verts_b[t])
+        selection = _select(topo, A, B, band, selector)
+        if selection is None:
             far_frames += 1
         else:
-            labels[:, t], distances[:, t], per_frame[t] = frame
+            labels[:, t], distances[:, t], per_frame[t] = _frame_result(topo, _finish(topo, A, B, selection, band, counts),
+                                                                        threshold)  # fmt: skip
         done += 1
         if progress is not None and (done % step == 0 or done == len(frames)):
             progress(f"contacts: {done}/{len(frames)} frames ({100 * done // len(frames)} %)")

@@ -56,17 +56,30 @@ class MeshDistance:
         wp, self._kernel = _kernel()
         self._wp = wp
         self.device = device
-        self._points = wp.zeros(num_vertices, dtype=wp.vec3, device=device)
-        self.mesh = wp.Mesh(points=self._points, indices=wp.array(np.asarray(faces, np.int32).ravel(), dtype=int, device=device))
+        self.num_vertices = int(num_vertices)
+        self._indices = wp.array(np.asarray(faces, np.int32).ravel(), dtype=int, device=device)
+        self._points = self.mesh = None
 
     def update(self, vertices: np.ndarray) -> None:
-        """Move the mesh to ``vertices (V, 3)`` (metres) and refit its BVH."""
-        self._points.assign(self._wp.array(np.asarray(vertices, np.float32), dtype=self._wp.vec3, device=self.device))
+        """Move the mesh to ``vertices (V, 3)`` (metres) and refit its BVH. The BVH is built on
+        the first call's vertices and refit afterwards (built on placeholder vertices, all at one
+        point, its split planes would be arbitrary and every query would visit most of it)."""
+        wp = self._wp
+        v = wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=self.device)
+        if len(v) != self.num_vertices:
+            raise ValueError(f"expected {self.num_vertices} vertices, got {len(v)}")
+        if self.mesh is None:
+            self._points = v
+            self.mesh = wp.Mesh(points=self._points, indices=self._indices)
+            return
+        self._points.assign(v)
         self.mesh.refit()
 
     def query(self, points: np.ndarray, band: float) -> np.ndarray:
         """Signed distances ``(N,)`` of ``points (N, 3)`` to the mesh; NaN beyond ``band``."""
         wp = self._wp
+        if self.mesh is None:
+            raise RuntimeError("MeshDistance.query before update(): the mesh has no vertices yet")
         if len(points) == 0:
             return np.zeros(0)
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
