@@ -3,9 +3,9 @@
 On ground-truth scenes (``--types``, seed 0, ``--fps``), a window of ``--frames`` frames centred
 on the scene's contact phase (its busiest frames), vertices precomputed:
 
-* **ours**: :func:`~dualhuman_builder.contacts.contacts_from_vertices` (broad phase, banded
-  sub-mesh queries both ways, deep-penetration flood fill, labels, events); median of
-  ``--repeats`` runs;
+* **ours**: :func:`~dualhuman_builder.contacts.contacts_from_vertices` in this process (box
+  broad phase, warp narrow phase, banded libigl on the sub-mesh both ways, deep-penetration
+  flood fill, labels, events); median of ``--repeats`` runs;
 * **(a) brute force**: ``igl.signed_distance`` of every vertex against the whole closed mesh, both
   ways, same band (one run; its cost hardly depends on the pose); its labels are checked
   identical to ours;
@@ -13,15 +13,17 @@ on the scene's contact phase (its busiest frames), vertices precomputed:
   frames and ``--trimesh-points`` vertices per direction, extrapolated to all vertices; needs
   the ``rtree`` package;
 * **(c)** for reference, the warp BVH ``PairDistance`` the scene generator uses (not libigl);
-* **(d)** ours per frame (:func:`~dualhuman_builder.contacts.contact_frame`) serially and in a
-  2-process fork pool, an experiment the library does not use (``igl`` holds the GIL, so
-  threads cannot help: the GIL check is printed).
+* **(d)** ours on a longer sequence, the whole scene tiled ``--tile`` times, in this process and
+  in ``--workers`` worker processes (:mod:`dualhuman_builder.contacts.workers`; ``igl`` holds
+  the GIL, so threads cannot help: the GIL check is printed); one run each, results checked
+  identical.
 
 Also: ours over the whole scene, F1 against the scene's own contacts, and the time to compute
 the vertices (``BodyTrack.vertices``), which the stage pays on top. Prints a table with ratios
 to ours and writes ``benchmarks/results/contacts.json``.
 
-    .venv/bin/python benchmarks/bench_contacts.py [--fps 15] [--frames 30] [--repeats 5] [--scene-cache DIR]
+    .venv/bin/python benchmarks/bench_contacts.py [--fps 15] [--frames 30] [--repeats 5] [--tile 4] [--workers 2]
+        [--scene-cache DIR]
 """
 
 from __future__ import annotations
@@ -40,15 +42,6 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-
-_POOL: dict = {}
-
-
-def _pool_frame(t: int):
-    from dualhuman_builder.contacts import contact_frame
-
-    topo, va, vb, band = _POOL["args"]
-    return contact_frame(topo, va[t], vb[t], band)
 
 def load_scene(kind: str, fps: float, cache: Path | None):
     from dualhuman_builder.sim.scenes import Scene, SceneParams, make_scene
@@ -92,7 +85,7 @@ def gil_held_by_igl(topo, A, B) -> bool:
 def bench_scene(kind, sc, topo, args) -> dict:
     import igl
 
-    from dualhuman_builder.contacts import contact_frame, contacts_for_scene, contacts_from_vertices
+    from dualhuman_builder.contacts import contacts_for_scene, contacts_from_vertices
 
     band, thr = args.band, args.threshold
     va_all, vb_all = (a.vertices() for a in sc.sequence.actors)
@@ -111,7 +104,7 @@ def bench_scene(kind, sc, topo, args) -> dict:
     times, res = [], None
     for _ in range(args.repeats):
         t0 = time.perf_counter()
-        res = contacts_from_vertices(va, vb, topo, threshold_m=thr, band_m=band)
+        res = contacts_from_vertices(va, vb, topo, threshold_m=thr, band_m=band, workers=1)
         times.append(time.perf_counter() - t0)
     ours = n / statistics.median(times)
     out["ours_fps"] = ours
@@ -169,19 +162,17 @@ def bench_scene(kind, sc, topo, args) -> dict:
         pair(va[t], vb[t], band)
     out["warp_fps"] = n / (time.perf_counter() - t0)
 
-    # (d) the per-frame work serially and in a 2-process fork pool (not used by the library)
-    import multiprocessing as mp
-
-    t0 = time.perf_counter()
-    for t in range(n):
-        contact_frame(topo, va[t], vb[t], band)
-    out["frames_serial_fps"] = n / (time.perf_counter() - t0)
-    _POOL["args"] = (topo, va, vb, band)
-    with mp.get_context("fork").Pool(2) as pool:
-        pool.map(_pool_frame, range(2))  # start-up
+    # (d) a longer sequence (the whole scene tiled) in this process and in worker processes
+    long_a, long_b = np.concatenate([va_all] * args.tile), np.concatenate([vb_all] * args.tile)
+    by_workers = {}
+    for w in (1, args.workers):
         t0 = time.perf_counter()
-        pool.map(_pool_frame, range(n), chunksize=max(1, n // 8))
-        out["frames_pool2_fps"] = n / (time.perf_counter() - t0)
+        by_workers[w] = contacts_from_vertices(long_a, long_b, topo, threshold_m=thr, band_m=band, workers=w)
+        out[f"tiled_workers{w}_fps"] = len(long_a) / (time.perf_counter() - t0)
+    out["tiled_frames"] = len(long_a)
+    out["tiled_identical"] = bool(np.array_equal(by_workers[1].labels, by_workers[args.workers].labels)
+                                  and np.array_equal(by_workers[1].distances, by_workers[args.workers].distances,
+                                                     equal_nan=True))  # fmt: skip
 
     # whole scene, and F1 against its own contacts
     full, score = contacts_for_scene(sc, thr, band, topology=topo)
@@ -204,6 +195,8 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threshold", type=float, default=0.02)
     ap.add_argument("--band", type=float, default=0.05)
+    ap.add_argument("--tile", type=int, default=4, help="row (d): the whole scene repeated this many times")
+    ap.add_argument("--workers", type=int, default=2, help="row (d): worker processes")
     ap.add_argument("--trimesh-frames", type=int, default=2)
     ap.add_argument("--trimesh-points", type=int, default=2000)
     ap.add_argument("--scene-cache", type=Path, default=None, help="keep generated scenes here (a hug takes ~80 s)")
@@ -234,12 +227,12 @@ def main(argv=None) -> None:
     print("-" * len(head))
     for kind, r in results.items():
         name = f"{kind} {r['window'][0]}-{r['window'][1]} ({r['contact_frames_in_window']} touch)"
-        rows = [("ours (broad phase + sub-mesh igl)", r["ours_fps"]),
+        rows = [("ours (warp narrow phase + sub-mesh igl)", r["ours_fps"]),
                 ("(a) brute-force igl, all vertices, banded", r["brute_fps"]),
                 ("(b) trimesh.proximity.signed_distance", r["trimesh_fps"]),
                 ("(c) warp PairDistance (reference)", r["warp_fps"]),
-                ("(d) ours per frame, serial", r["frames_serial_fps"]),
-                ("(d) ours per frame, 2-process fork pool", r["frames_pool2_fps"])]  # fmt: skip
+                (f"(d) ours, scene x{args.tile} ({r['tiled_frames']} fr), 1 process", r["tiled_workers1_fps"]),
+                (f"(d) ours, scene x{args.tile}, {args.workers} worker processes", r[f"tiled_workers{args.workers}_fps"])]  # fmt: skip
         for label, fps in rows:
             if fps is None:
                 print(f"{name:24s}{label:44s}{'n/a':>14s}{'':>9s}  ({r.get('trimesh_unavailable', '')})")
@@ -249,6 +242,7 @@ def main(argv=None) -> None:
         w = r["whole_scene"]
         print(f"{'':24s}ours, whole scene ({w['frames']} frames, {w['skipped_far_frames']} far): {w['fps']:.1f} "
               f"frame pairs/s; F1 {w['f1']:.4f} (P {w['precision']:.4f}, R {w['recall']:.4f}), {w['events']} events")
+        print(f"{'':24s}(d) worker processes identical to one: {r['tiled_identical']}")
         print(f"{'':24s}labels identical to brute force: {r['labels_identical_to_brute_force']}; queried per frame: "
               f"{r['ours_queried_vertices_per_frame']:.0f} vertices, {r['ours_queried_faces_per_frame']:.0f} faces "
               f"(both ways); vertices from the body model: {1000 * r['vertices_s_per_frame_pair']:.1f} ms/frame pair")

@@ -132,6 +132,46 @@ def test_f1_against_the_scenes_own_contacts(topo, handshake):
     assert res.stats["skipped_far_frames"] > 0
 
 
+def test_worker_processes_give_the_same_result(topo, hug, tmp_path, monkeypatch):
+    """Frames spread over two worker processes (interleaved): the same labels, distances, events
+    and query counts as in one process; progress reaches 100 %; the temporary folder is removed."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    va, vb = (np.concatenate([v, v[::-1]]) for v in hug)  # 6 frames, far one in the middle
+    vb[2] += np.float32(3.0)
+    one = contacts_from_vertices(va, vb, topo, workers=1)
+    messages = []
+    two = contacts_from_vertices(va, vb, topo, workers=2, progress=messages.append)
+    assert one.stats["workers"] == 1 and two.stats["workers"] == 2
+    np.testing.assert_array_equal(two.labels, one.labels)
+    np.testing.assert_array_equal(two.distances, one.distances)
+    assert two.events == one.events and one.labels.any()
+    for key in ("queried_vertices", "queried_faces", "deep_vertices", "skipped_far_frames"):
+        assert two.stats[key] == one.stats[key], key
+    assert one.stats["skipped_far_frames"] == 1
+    assert messages[0] == "contacts: 6 frames in 2 worker processes" and messages[-1].endswith("6/6 frames (100 %)")
+    assert list(tmp_path.iterdir()) == []
+    from dualhuman_builder.contacts.workers import MIN_FRAMES_PER_WORKER, auto_workers
+
+    assert auto_workers(MIN_FRAMES_PER_WORKER * 2 - 1, cpus=8) == 1  # short: stays in this process
+    assert auto_workers(MIN_FRAMES_PER_WORKER * 2, cpus=8) == 2
+    assert auto_workers(100_000, cpus=2) == 2 and auto_workers(100_000, cpus=64) == 8
+
+
+def test_a_failing_worker_is_reported(topo, hug, tmp_path, monkeypatch):
+    import sys
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(sys, "executable", "/bin/false")  # the worker interpreter exits 1 at once
+    with pytest.raises(RuntimeError, match=r"contacts worker \d of 2 failed \(exit status 1\)"):
+        contacts_from_vertices(*hug, topo, workers=2)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="workers must be a whole number >= 1"):
+        contacts_from_vertices(*hug, topo, workers=0)
+
+
 def test_far_apart_bodies_are_skipped_without_a_query(topo, hug):
     va, vb = hug
     res = contacts_from_vertices(va, vb + np.array([3.0, 0.0, 0.0], np.float32), topo)

@@ -394,6 +394,21 @@ def _frame_result(topo: ContactTopology, frame, threshold: float):
     return labels, np.stack([d_a, d_b]).astype(np.float16), _frame_pairs(topo, d_a, f_a, d_b, f_b, threshold)
 
 
+def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: float, band: float, counts: dict,
+                    on_done: Callable[[], None] | None = None):  # fmt: skip
+    """Yields ``(t, result)`` for each index ``t`` of ``frames`` in order, in this thread:
+    ``result`` is :func:`_frame_result`'s tuple, or None when the bodies are farther apart than
+    ``band``. ``counts`` accumulates the query counts; ``on_done()`` after each frame."""
+    selector = _selector(topo)
+    for t in frames:
+        A, B = _as_frame(topo, verts_a[t], verts_b[t])
+        selection = _select(topo, A, B, band, selector)
+        result = None if selection is None else _frame_result(topo, _finish(topo, A, B, selection, band, counts), threshold)
+        if on_done is not None:
+            on_done()
+        yield int(t), result
+
+
 # ============================================================================ sequences
 def check_params(threshold_m: float, band_m: float, merge_gap: int = DEFAULT_MERGE_GAP) -> tuple[float, float, int]:
     """Validated ``(threshold_m, band_m, merge_gap)``: a positive threshold (metres), a finite band
@@ -428,7 +443,7 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
                            threshold_m: float = DEFAULT_THRESHOLD_M, band_m: float = DEFAULT_BAND_M,
                            merge_gap: int = DEFAULT_MERGE_GAP, fps: float | None = None,
                            actors: Sequence[str] = ("a", "b"), nan_policy: str = "skip",
-                           progress: Callable[[str], None] | None = None) -> ContactResult:  # fmt: skip
+                           progress: Callable[[str], None] | None = None, workers: int | None = None) -> ContactResult:  # fmt: skip
     """Contacts between two bodies given their vertices ``verts_a``, ``verts_b`` ``(T, V, 3)``
     (world metres, any float dtype) on the mesh ``topology`` (see :meth:`ContactTopology.for_model`).
 
@@ -437,8 +452,13 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     ``nan_policy``: ``"skip"`` (frames with any non-finite vertex are left out, counted in
     ``stats["skipped_nan_frames"]``, with ``valid`` False) or ``"raise"`` (ValueError naming the
     first such frame, before any work). ``progress(str)`` is called about every 10 % of frames.
+    ``workers``: processes to spread the frames over (:mod:`~dualhuman_builder.contacts.workers`;
+    1: all in this process; default: one per CPU, up to 8, when each gets at least 48 frames).
+    The result does not depend on it.
     """
     topo = topology
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1):
+        raise ValueError(f"workers must be a whole number >= 1 (or None for automatic), got {workers!r}")
     V = topo.num_vertices
     verts_a = _check_vertices("verts_a", verts_a, V)
     verts_b = _check_vertices("verts_b", verts_b, V)
@@ -470,18 +490,27 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     frames = np.flatnonzero(finite)
     step = max(1, math.ceil(len(frames) / 10))
 
-    selector = _selector(topo)
-    for t in frames:
-        A, B = _as_frame(topo, verts_a[t], verts_b[t])
-        selection = _select(topo, A, B, band, selector)
-        if selection is None:
-            far_frames += 1
-        else:
-            labels[:, t], distances[:, t], per_frame[t] = _frame_result(topo, _finish(topo, A, B, selection, band, counts),
-                                                                        threshold)  # fmt: skip
+
+    def tick():
+        nonlocal done
         done += 1
         if progress is not None and (done % step == 0 or done == len(frames)):
             progress(f"contacts: {done}/{len(frames)} frames ({100 * done // len(frames)} %)")
+
+    from dualhuman_builder.contacts.workers import auto_workers, run_in_workers
+
+    n_workers = auto_workers(len(frames)) if workers is None else min(int(workers), max(1, len(frames)))
+    if n_workers > 1:
+        if progress is not None:
+            progress(f"contacts: {len(frames)} frames in {n_workers} worker processes")
+        results = run_in_workers(topo, verts_a, verts_b, frames, threshold, band, n_workers, counts, on_done=tick)
+    else:
+        results = _compute_frames(topo, verts_a, verts_b, frames, threshold, band, counts, on_done=tick)
+    for t, result in results:
+        if result is None:
+            far_frames += 1
+        else:
+            labels[:, t], distances[:, t], per_frame[t] = result
     seconds = time.perf_counter() - t0
     frame_contact = labels.any(axis=(0, 2))
     computed = int(finite.sum())
@@ -500,6 +529,7 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
         "band_m": band,
         "merge_gap": int(merge_gap),
         "fps": fps,
+        "workers": n_workers,
     }
     events = _events(per_frame, topo.region_names, int(merge_gap), fps)
     return ContactResult(labels, distances, frame_contact, finite, events, stats, topo.region_names, tuple(actors))
@@ -507,7 +537,8 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
 
 def compute_contacts(seq, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: float = DEFAULT_BAND_M,
                      progress: Callable[[str], None] | None = None, merge_gap: int = DEFAULT_MERGE_GAP,
-                     nan_policy: str = "skip", topology: ContactTopology | None = None) -> ContactResult:  # fmt: skip
+                     nan_policy: str = "skip", topology: ContactTopology | None = None,
+                     workers: int | None = None) -> ContactResult:  # fmt: skip
     """Contacts between the two fitted bodies of ``seq`` (an
     :class:`~dualhuman_builder.tracks.InteractionSequence`, e.g. the fit stage's ``bodies.npz``);
     vertices from :meth:`BodyTrack.vertices` (computed here if not cached: ~5 ms per frame pair).
@@ -526,7 +557,7 @@ def compute_contacts(seq, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: floa
     return contacts_from_vertices(seq.actors[0].vertices(), seq.actors[1].vertices(), topo, threshold_m=threshold_m,
                                   band_m=band_m, merge_gap=merge_gap, fps=seq.fps,
                                   actors=tuple(a.actor or f"actor{i}" for i, a in enumerate(seq.actors)),
-                                  nan_policy=nan_policy, progress=progress)  # fmt: skip
+                                  nan_policy=nan_policy, progress=progress, workers=workers)  # fmt: skip
 
 
 @functools.lru_cache(maxsize=1)

@@ -37,9 +37,12 @@ def _fitted_bodies(ws, take: str):
 
 
 def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: float = DEFAULT_BAND_M,
-                 force: bool = False, log: Callable[[str], None] = print, merge_gap: int = DEFAULT_MERGE_GAP):  # fmt: skip
+                 force: bool = False, log: Callable[[str], None] = print, merge_gap: int = DEFAULT_MERGE_GAP,
+                 workers: int | None = None):  # fmt: skip
     """Contacts between the two fitted bodies of ``take`` (thresholds in metres); returns the
-    :class:`~dualhuman_builder.workspace.stages.StageResult` (``skipped`` when up to date)."""
+    :class:`~dualhuman_builder.workspace.stages.StageResult` (``skipped`` when up to date).
+    ``workers``: processes (see :func:`~dualhuman_builder.contacts.compute.contacts_from_vertices`;
+    the result does not depend on it, so it is not part of the stage's parameters)."""
     from dualhuman_builder.contacts.compute import compute_contacts
     from dualhuman_builder.tracks import InteractionSequence
 
@@ -51,7 +54,7 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
         seq = InteractionSequence.load(bodies)
         log(f"contacts: {seq.num_frames} frames of {take}, threshold {1000 * threshold_m:g} mm, "
             f"band {1000 * band_m:g} mm")  # fmt: skip
-        res = compute_contacts(seq, threshold_m, band_m, progress=log, merge_gap=merge_gap)
+        res = compute_contacts(seq, threshold_m, band_m, progress=log, merge_gap=merge_gap, workers=workers)
         res.save(out.path("contacts.npz"))
         counts = res.contact_counts()
         report = {

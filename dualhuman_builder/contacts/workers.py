@@ -1,0 +1,143 @@
+"""Contacts of many frames in worker processes.
+
+``igl.signed_distance`` holds the GIL for the whole call, so threads cannot share its work; on a
+hug's contact frames libigl is about half of the time. Long takes are therefore split across
+``workers`` processes, each started as ``python -m dualhuman_builder.contacts.workers`` (a fresh
+interpreter: no fork of a process holding torch's and warp's threads, and no re-import of the
+caller's ``__main__``, so scripts without a ``__main__`` guard work). Worker ``k`` of ``W`` takes
+frames ``k, k + W, ...`` (contact phases are not spread evenly over a take; interleaving is). It
+imports numpy, scipy, libigl and warp but not torch (about 1 s to start), which is why short
+sequences stay in the calling process (:data:`MIN_FRAMES_PER_WORKER`).
+
+The vertices travel through ``.npy`` files in a temporary folder (memory-mapped by the workers),
+the topology as a pickle, and each worker writes its frames' results to one ``.npz`` and prints
+one line per frame for progress. The folder is removed afterwards, also on failure. A worker
+that fails raises :class:`RuntimeError` with its exit status and the end of its stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+# frames per worker below which a worker's start-up (~1 s) costs more than it saves
+MIN_FRAMES_PER_WORKER = 48
+
+
+def auto_workers(frames: int, cpus: int | None = None) -> int:
+    """Processes for ``frames`` frames to compute: one per CPU (at most 8) as long as each gets at
+    least :data:`MIN_FRAMES_PER_WORKER` frames; 1 means "in the calling process"."""
+    cpus = cpus or os.cpu_count() or 1
+    return max(1, min(cpus, 8, frames // MIN_FRAMES_PER_WORKER))
+
+
+def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.ndarray, threshold: float, band: float,
+                   workers: int, counts: dict, on_done: Callable[[], None] | None = None) -> Iterator[tuple[int, object]]:  # fmt: skip
+    """Results of :func:`~dualhuman_builder.contacts.compute._compute_frames` for ``frames`` (indices
+    into ``verts_a``/``verts_b`` ``(T, V, 3)``) computed by ``workers`` processes: yields ``(t,
+    result)`` once all are done; adds the workers' query counts to ``counts``; ``on_done()`` is
+    called (in this thread) as each frame finishes."""
+    frames = np.asarray(frames, dtype=np.int64)
+    tmp = Path(tempfile.mkdtemp(prefix="dualhuman-contacts-"))
+    procs: list[subprocess.Popen] = []
+    try:
+        np.save(tmp / "verts_a.npy", np.asarray(verts_a[frames], dtype=np.float32))
+        np.save(tmp / "verts_b.npy", np.asarray(verts_b[frames], dtype=np.float32))
+        with open(tmp / "topology.pkl", "wb") as f:
+            pickle.dump(topo, f)
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[2])  # the folder holding the package
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        for k in range(workers):
+            cmd = [sys.executable, "-m", "dualhuman_builder.contacts.workers", str(tmp), str(k), str(workers),
+                   repr(float(threshold)), repr(float(band))]  # fmt: skip
+            with open(tmp / f"stderr_{k}.txt", "wb") as err:
+                procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, env=env))
+        lock, done = threading.Lock(), [0]
+
+        def read(p):  # one line per frame done
+            for _ in p.stdout:
+                with lock:
+                    done[0] += 1
+
+        readers = [threading.Thread(target=read, args=(p,), daemon=True) for p in procs]
+        for r in readers:
+            r.start()
+        reported = 0
+        while True:
+            alive = any(r.is_alive() for r in readers)
+            with lock:
+                n = done[0]
+            for _ in range(n - reported):
+                if on_done is not None:
+                    on_done()
+            reported = n
+            if not alive:
+                break
+            time.sleep(0.1)
+        for k, p in enumerate(procs):
+            if p.wait() != 0:
+                tail = (tmp / f"stderr_{k}.txt").read_text(errors="replace")[-2000:]
+                raise RuntimeError(f"contacts worker {k + 1} of {workers} failed (exit status {p.returncode}):\n{tail}")
+        out: list[tuple[int, object]] = []
+        for k in range(workers):
+            with np.load(tmp / f"out_{k}.npz") as z:  # each z[key] reads the array again: once each
+                index, computed, labels, distances = z["index"], z["computed"], z["labels"], z["distances"]
+                stats = json.loads(str(z["stats"]))
+            for key, v in stats["counts"].items():
+                counts[key] = counts.get(key, 0) + v
+            for j, i in enumerate(index):
+                if not computed[j]:
+                    out.append((int(frames[i]), None))
+                    continue
+                frame_pairs = {(int(a), int(b)): (int(c), float(m)) for a, b, c, m in stats["pairs"][j]}
+                out.append((int(frames[i]), (labels[j], distances[j], frame_pairs)))
+        yield from sorted(out, key=lambda item: item[0])
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _main(argv: list[str]) -> None:
+    from dualhuman_builder.contacts.compute import _compute_frames
+
+    tmp, k, workers, threshold, band = Path(argv[0]), int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4])
+    with open(tmp / "topology.pkl", "rb") as f:
+        topo = pickle.load(f)
+    va = np.load(tmp / "verts_a.npy", mmap_mode="r")
+    vb = np.load(tmp / "verts_b.npy", mmap_mode="r")
+    index = np.arange(k, len(va), workers)
+    V = topo.num_vertices
+    labels = np.zeros((len(index), 2, V), dtype=bool)
+    distances = np.full((len(index), 2, V), np.nan, dtype=np.float16)
+    computed = np.zeros(len(index), dtype=bool)
+    pairs: list[list] = [[] for _ in index]
+    counts = {"queried_vertices": 0, "queried_faces": 0, "deep_vertices": 0}
+    for j, (_, result) in enumerate(_compute_frames(topo, va, vb, index, threshold, band, counts)):
+        if result is not None:
+            labels[j], distances[j], frame_pairs = result
+            computed[j] = True
+            pairs[j] = [[a, b, c, m] for (a, b), (c, m) in frame_pairs.items()]
+        sys.stdout.write("1\n")
+        sys.stdout.flush()
+    stats = json.dumps({"counts": counts, "pairs": pairs})
+    np.savez(tmp / f"out_{k}.npz", index=index, labels=labels, distances=distances, computed=computed,
+             stats=np.array(stats))  # fmt: skip
+
+
+if __name__ == "__main__":
+    _main(sys.argv[1:])
