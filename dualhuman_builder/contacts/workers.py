@@ -52,8 +52,12 @@ def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.nd
     tmp = Path(tempfile.mkdtemp(prefix="dualhuman-contacts-"))
     procs: list[subprocess.Popen] = []
     try:
-        np.save(tmp / "verts_a.npy", np.asarray(verts_a[frames], dtype=np.float32))
-        np.save(tmp / "verts_b.npy", np.asarray(verts_b[frames], dtype=np.float32))
+        for name, v in (("verts_a", verts_a), ("verts_b", verts_b)):  # in their own dtype: same answers
+            mm = np.lib.format.open_memmap(tmp / f"{name}.npy", mode="w+", dtype=v.dtype, shape=(len(frames),) + v.shape[1:])
+            for i in range(0, len(frames), 256):  # in blocks: no second copy of a long take in memory
+                mm[i:i + 256] = v[frames[i:i + 256]]
+            mm.flush()
+            del mm
         with open(tmp / "topology.pkl", "wb") as f:
             pickle.dump(topo, f)
         env = dict(os.environ)
