@@ -18,9 +18,10 @@ every vertex against the whole closed mesh, and labels equal to that call's with
    holds the closest face of every vertex within the band and every face around its closest vertex
    or edge (they all contain the closest point), so libigl finds the same closest point with the
    same pseudonormal sign as on the whole mesh. ``igl`` rebuilds its AABB tree and normals on
-   every call (about 2 us per face) and spends about 5 us per point within the band; on the whole
-   26,692-face body the rebuild alone dominated (a hug's contact frames: ~100 ms per frame pair
-   with a box-patch broad phase that left ~13,000 faces per direction, ~45 ms with this one).
+   every call (about 1.5 us per face) and spends about 5 us per point within the band. On a hug's
+   contact frames (2-core CPU, ``benchmarks/bench_contacts.py``): ~140 ms per frame pair with the
+   former box-patch broad phase, which left ~13,500 faces per direction; ~85 ms with this one, of
+   which ~30 ms libigl (~2,600 vertices and ~2,300 faces per direction) and ~40 ms warp.
 3. **Deep penetration.** ``igl`` returns NaN for points farther than the band on either side, so
    a vertex more than ``band_m`` inside the other body would come back NaN. Such vertices are
    found by a flood fill over the query body's edges: from a vertex inside within the band, across
