@@ -184,9 +184,10 @@ def test_far_apart_bodies_are_skipped_without_a_query(topo, hug):
 
 def test_narrow_phase_keeps_what_libigl_needs_at_exact_ties():
     """Two parallel slabs 6 cm apart; query points on the plane midway between them are exactly
-    3 cm from both (a tie the float32 narrow phase cannot break), others scattered near and far.
-    Every point within the band is selected, none beyond band + slack, and libigl on the
-    selected faces returns what it returns on the whole mesh, value and sign."""
+    3 cm from both (a tie the float32 narrow phase cannot break), others scattered near and far;
+    at the origin and 1 km from it. Every point within the band is selected, none beyond band +
+    slack, and libigl on the selected faces returns what it returns on the whole mesh, value and
+    sign (to 1e-12 m)."""
     import igl
     import trimesh
 
@@ -200,20 +201,22 @@ def test_narrow_phase_keeps_what_libigl_needs_at_exact_ties():
     rng = np.random.default_rng(0)
     mid = np.c_[rng.uniform(-0.15, 0.15, 200), np.zeros(200), rng.uniform(-0.15, 0.15, 200)]
     scattered = rng.uniform([-0.3, -0.2, -0.3], [0.3, 0.2, 0.3], (2000, 3))
-    P = np.concatenate([mid, scattered])
     sel = NearSelector(F, V)
-    near, faces = sel.select(0, P, V, BAND)
-    full = igl.signed_distance(P, V, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
-    within = np.flatnonzero(np.abs(full) <= BAND)
-    assert set(within) <= set(near) and np.abs(full[near]).max() <= BAND + 2 * sel.slack
-    assert set(range(200)) <= set(near)  # the ties
-    assert 0 < len(faces) < len(F)
-    sub = F[faces]
-    S = igl.signed_distance(P[near], V, sub, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL, lower_bound=-BAND,
-                            upper_bound=BAND)[0]  # fmt: skip
-    ok = np.isfinite(S)
-    np.testing.assert_array_equal(ok, np.abs(full[near]) <= BAND)
-    np.testing.assert_allclose(S[ok], full[near][ok], rtol=0, atol=1e-12)
+    # also 1 km from the world origin, where a float32 coordinate alone rounds by 3e-5 m (> the slack)
+    for shift in (np.zeros(3), np.array([1000.0, 0.0, -1000.0])):
+        P, Vs = np.concatenate([mid, scattered]) + shift, V + shift
+        near, faces = sel.select(0, P, Vs, BAND)
+        full = igl.signed_distance(P, Vs, F, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
+        within = np.flatnonzero(np.abs(full) <= BAND)
+        assert set(within) <= set(near) and np.abs(full[near]).max() <= BAND + 2 * sel.slack
+        assert set(range(200)) <= set(near)  # the ties
+        assert 0 < len(faces) < len(F)
+        sub = F[faces]
+        S = igl.signed_distance(P[near], Vs, sub, sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL, lower_bound=-BAND,
+                                upper_bound=BAND)[0]  # fmt: skip
+        ok = np.isfinite(S)
+        np.testing.assert_array_equal(ok, np.abs(full[near]) <= BAND)
+        np.testing.assert_allclose(S[ok], full[near][ok], rtol=0, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

@@ -31,12 +31,9 @@ every vertex against the whole closed mesh, and labels equal to that call's with
    (anny has a few edges longer than 5 cm, on the thighs and shins; a deep vertex reachable
    only across them stays NaN, i.e. not in contact.)
 
-Frames run one after the other in the calling thread. ``igl.signed_distance`` holds the GIL (a
-Python thread makes no progress during a call), so a thread pool cannot help. A 2-process fork
-pool measured 1.0x to 1.8x the serial loop on the shared 2-core machine, depending on what else
-ran (``benchmarks/bench_contacts.py``, row d), and a spawned one lost its ~1 s start-up on short
-sequences; neither is used: forking a process that holds torch's and warp's threads is unsafe,
-and spawning fails in callers' scripts without a ``__main__`` guard.
+Frames run one after the other in the calling thread, or, for long sequences, in worker processes
+(:mod:`~dualhuman_builder.contacts.workers`): ``igl.signed_distance`` holds the GIL for each whole
+call, so threads cannot share its work.
 
 Region events follow CHI3D's contact signatures: a region pair (region ``r`` of actor 0, region
 ``s`` of actor 1) is in contact on a frame when a contact vertex of actor 0 in ``r`` has its

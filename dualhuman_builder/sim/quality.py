@@ -126,7 +126,6 @@ def joint_limit_violations(track) -> dict[str, float]:
     return out
 
 
-
 # ------------------------------------------------------------------ inside/outside by winding number
 #: Frames per call of the winding-number penetration query (bounds its pool of meshes).
 WINDING_CHUNK = 16
