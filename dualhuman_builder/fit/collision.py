@@ -312,7 +312,6 @@ class CollisionTerm:
         self._pool_points: list[wp.array] = []
         self._executor: ThreadPoolExecutor | None = None
         self._lock = threading.Lock()
-        self._obstacle_faces_t: dict = {}
         self.max_memo = int(max_memo)
         #: frame key -> (a's vertices (V, 3), b's (V, 3), sign (2, V) int8, lb (2, V)), float32; row = side
         self._memo: dict = {}
@@ -320,20 +319,36 @@ class CollisionTerm:
         self.last_stats: dict = {}
 
     # ------------------------------------------------------------------------------------ public
-    def __call__(self, verts_a, verts_b, keys=None) -> CollisionResult:
+    def __call__(self, verts_a, verts_b, keys=None, points=None) -> CollisionResult:
         """Loss and diagnostics for ``verts_a``, ``verts_b`` ``(B, V, 3)`` tensors (metres).
         ``keys``: optional ``B`` hashable names of the frames (e.g. timeline indices), which lets
-        later calls on the same frames reuse this one's signs (see the module docstring)."""
+        later calls on the same frames reuse this one's signs (see the module docstring).
+
+        ``points``: optional ``points(body, frames, vertices) -> (M, 3)`` tensor, the positions of
+        body ``body`` (0: a, 1: b) at the pairs ``frames (M,)``, ``vertices (M,)`` (int64 tensors),
+        differentiable in whatever the caller optimises. Given it, ``verts_a``/``verts_b`` only
+        locate the contacts (they may be detached) and the loss's gradient flows through
+        ``points`` at the few vertices it reads (the penetrating ones and the corners of their
+        closest triangles; all of a frame's only where the coincidence guard is on): the same loss
+        and gradient without differentiating every vertex of every frame."""
         va, vb = self._check(verts_a, verts_b, need_tensor=True)
         keys = self._check_keys(keys, va.shape[0])
         B, V = va.shape[:2]
         dev, dtype = va.device, va.dtype
+        if points is None:
+            def points(body, f, v):
+                return (va, vb)[body][f, v]
+
+            # zero that keeps the graph (and a zero gradient) for frames without contact
+            loss = (va.sum(dim=(1, 2)) + vb.sum(dim=(1, 2))) * 0.0
+        else:
+            if self.method == "grid":
+                raise ValueError("points= needs an exact method ('warp' or 'igl'); the grid samples every vertex")
+            loss = torch.zeros(B, device=dev, dtype=dtype)
         with self._lock:
             self.last_stats = {}
             active = self._broad_phase(va.detach(), vb.detach())
             frames = np.flatnonzero(active.cpu().numpy())
-            # zero that keeps the graph (and a zero gradient) for frames without contact
-            loss = (va.sum(dim=(1, 2)) + vb.sum(dim=(1, 2))) * 0.0
             max_depth = torch.zeros(B, device=dev, dtype=dtype)
             count = torch.zeros(B, device=dev, dtype=torch.int64)
             if len(frames):
@@ -343,12 +358,12 @@ class CollisionTerm:
                     d = torch.cat([depth_a, depth_b], dim=1)
                 else:
                     c = self._contacts(va.detach(), vb.detach(), frames, keys)
-                    loss = loss + self._assemble(va, vb, c)
+                    loss = loss + self._assemble(c, B, V, dev, dtype, points)
                     d = self._depth_maps(c, B, V, dev, dtype)
                     d = torch.cat(d, dim=1)
                 max_depth = torch.where(d > self.eps, d, torch.zeros_like(d)).amax(dim=1)
                 count = (d > self.eps).sum(dim=1)
-                loss = loss + self._guard(va, vb, active)
+                loss = loss + self._guard(va.detach(), vb.detach(), active, points)
         share = count.to(dtype) / (2 * V)
         return CollisionResult(loss=loss, max_depth_m=max_depth, penetrating=count, share=share, active=active)
 
@@ -693,36 +708,43 @@ class CollisionTerm:
         return tuple(np.concatenate(x) for x in out)
 
     # ------------------------------------------------------------------------------------ torch side
-    def _assemble(self, va: torch.Tensor, vb: torch.Tensor, c: _Contacts) -> torch.Tensor:
-        """Differentiable ``sum rho(depth) / (2V)`` per frame ``(B,)`` from the contacts."""
-        B, V = va.shape[:2]
-        out = torch.zeros(B, device=va.device, dtype=va.dtype)
-        if len(c.frame) == 0:
+    def _assemble(self, c: _Contacts, B: int, V: int, dev, dtype, points) -> torch.Tensor:
+        """Differentiable ``sum rho(depth) / (2V)`` per frame ``(B,)`` from the contacts; positions
+        from ``points`` (see :meth:`__call__`), each (body, frame, vertex) read once."""
+        out = torch.zeros(B, device=dev, dtype=dtype)
+        M = len(c.frame)
+        if M == 0:
             return out
-        dev = va.device
-        key = str(dev)
-        if key not in self._obstacle_faces_t:
-            self._obstacle_faces_t[key] = torch.as_tensor(self.obstacle_faces, device=dev)
-        Ft = self._obstacle_faces_t[key]
-        for side, (query, obst) in enumerate(((vb, va), (va, vb))):
-            m = c.side == side
-            if not m.any():
+        # side 0: b's vertices (body 1) inside a (body 0); side 1: a's inside b
+        tri = self.obstacle_faces[c.face]  # (M, 3)
+        q_idx = np.empty(M, np.int64)  # row of each contact's query point in `pos`
+        o_idx = np.empty((M, 3), np.int64)  # rows of its closest triangle's corners
+        pos, offset = [], 0
+        for body in (0, 1):
+            mq, mo = c.side == 1 - body, c.side == body
+            pair = np.concatenate([c.frame[mq] * V + c.vert[mq], (c.frame[mo, None] * V + tri[mo]).ravel()])
+            if not len(pair):
                 continue
-            f = torch.as_tensor(c.frame[m], device=dev)
-            v = torch.as_tensor(c.vert[m], device=dev)
-            tri = Ft[torch.as_tensor(c.face[m].astype(np.int64), device=dev)]  # (M, 3)
-            w = torch.as_tensor(c.bary[m], device=dev, dtype=va.dtype)
-            p = query[f, v]  # (M, 3)
-            x = obst[f[:, None], tri]  # (M, 3, 3)
-            closest = (w[:, :, None] * x).sum(dim=1)
-            diff = closest - p
-            with torch.no_grad():
-                dist = diff.norm(dim=1, keepdim=True)
-                fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
-                fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
-                n = torch.where(dist > 1e-9, diff / dist.clamp_min(1e-20), fn)
-            depth = (diff * n).sum(dim=1).clamp_min(0.0)
-            out = out.index_add(0, f, self.rho(depth))
+            uniq, inv = np.unique(pair, return_inverse=True)
+            nq = int(mq.sum())
+            q_idx[mq] = offset + inv[:nq]
+            o_idx[mo] = offset + inv[nq:].reshape(-1, 3)
+            u = torch.as_tensor(uniq, device=dev)
+            pos.append(points(body, u // V, u % V).to(dtype))
+            offset += len(uniq)
+        pos = torch.cat(pos)
+        p = pos[torch.as_tensor(q_idx, device=dev)]  # (M, 3)
+        x = pos[torch.as_tensor(o_idx, device=dev)]  # (M, 3, 3)
+        w = torch.as_tensor(c.bary, device=dev, dtype=dtype)
+        closest = (w[:, :, None] * x).sum(dim=1)
+        diff = closest - p
+        with torch.no_grad():
+            dist = diff.norm(dim=1, keepdim=True)
+            fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
+            fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
+            n = torch.where(dist > 1e-9, diff / dist.clamp_min(1e-20), fn)
+        depth = (diff * n).sum(dim=1).clamp_min(0.0)
+        out = out.index_add(0, torch.as_tensor(c.frame, device=dev), self.rho(depth))
         return out / (2 * V)
 
     def _depth_maps(self, c: _Contacts, B: int, V: int, dev, dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -735,11 +757,22 @@ class CollisionTerm:
             maps.append(torch.as_tensor(d, device=dev, dtype=dtype))
         return maps[0], maps[1]
 
-    def _guard(self, va: torch.Tensor, vb: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-        """``guard_weight * relu(1 - |dc| / guard_m)`` per frame, pushing the centroids apart."""
+    def _guard(self, va: torch.Tensor, vb: torch.Tensor, active: torch.Tensor, points) -> torch.Tensor:
+        """``guard_weight * relu(1 - |dc| / guard_m)`` per frame, pushing the centroids apart;
+        ``va``, ``vb`` (detached) pick the frames where it is on, ``points`` gives their centroids
+        with the gradient."""
+        B, V = va.shape[:2]
+        out = torch.zeros(B, device=va.device, dtype=va.dtype)
         if self.guard_weight == 0:
-            return torch.zeros(va.shape[0], device=va.device, dtype=va.dtype)
-        delta = vb.mean(dim=1) - va.mean(dim=1)  # (B, 3)
+            return out
+        on = active & ((vb.mean(dim=1) - va.mean(dim=1)).norm(dim=1) < self.guard_m)
+        frames = torch.nonzero(on).flatten()
+        if not len(frames):  # relu(1 - |dc| / guard_m) and its gradient are 0 everywhere else
+            return out
+        f = frames.repeat_interleave(V)
+        v = torch.arange(V, device=va.device).repeat(len(frames))
+        ca, cb = (points(body, f, v).reshape(len(frames), V, 3).mean(dim=1) for body in (0, 1))
+        delta = cb - ca  # (n, 3)
         with torch.no_grad():
             dist = delta.norm(dim=1, keepdim=True)
             ex = torch.zeros_like(delta)
@@ -747,7 +780,7 @@ class CollisionTerm:
             u = torch.where(dist > 1e-9, delta / dist.clamp_min(1e-20), ex)
         proj = (delta * u).sum(dim=1)
         g = self.guard_weight * torch.relu(1.0 - proj / self.guard_m)
-        return torch.where(active, g, torch.zeros_like(g))
+        return out.index_put((frames,), g.to(out.dtype))
 
     # ------------------------------------------------------------------------------------ grid method
     def _grid_terms(self, va: torch.Tensor, vb: torch.Tensor, frames: np.ndarray):

@@ -312,10 +312,17 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     if not _finite(params):
                         raise _Diverged
                     copt.zero_grad()
-                    e, _ = skeleton_energy()
-                    vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
-                          for k, a in enumerate(acts)]  # fmt: skip
-                    c = collide(vs[0], vs[1], keys=s0 + hit).loss.sum()
+                    e, outs = skeleton_energy()
+                    # the full meshes, without gradient, only locate the contacts; the loss reads a few
+                    # thousand (frame, vertex) pairs, skinned again with the gradient (skin_at)
+                    with torch.no_grad():
+                        vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
+                              for k, a in enumerate(acts)]  # fmt: skip
+
+                    def at(body, f, v):
+                        return acts[body].rig.skin_at(outs[body][0], hit_t[f], v)
+
+                    c = collide(vs[0], vs[1], keys=s0 + hit, points=at).loss.sum()
                     e = e + weight * c
                     e.backward()
                     return e

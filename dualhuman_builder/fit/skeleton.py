@@ -167,6 +167,16 @@ class BodyRig:
             verts = (p * self._w[None, ..., None]).sum(2)
         return Posed(heads, rot, verts)
 
+    def skin_at(self, posed: Posed, frames: torch.Tensor, vertex_ids: torch.Tensor) -> torch.Tensor:
+        """Positions ``(M, 3)`` of vertices ``vertex_ids (M,)`` in frames ``frames (M,)`` (rows of
+        ``posed``), differentiable through ``posed.rot`` and ``posed.heads``: the same linear blend
+        skinning as :meth:`pose`, for scattered (frame, vertex) pairs only. The collision term needs
+        a gradient at a few thousand such pairs, not at every vertex of every frame."""
+        u, idx, w = self._u_all[vertex_ids], self._idx_all[vertex_ids], self._w_all[vertex_ids]  # (M, K, ...)
+        f = frames[:, None]
+        p = (posed.rot[f, idx] @ u[..., None])[..., 0] + posed.heads[f, idx]  # (M, K, 3)
+        return (p * w[..., None]).sum(1)
+
     def segment_frames(self, seg_rot: torch.Tensor) -> torch.Tensor:
         """Suit-style segment orientations ``(B, S, 3, 3)`` of driven-bone rotations."""
         return seg_rot @ self.seg_frame
