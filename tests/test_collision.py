@@ -206,6 +206,42 @@ def test_batch_equals_frames_one_by_one(ct, bodies):
     assert r.loss[1].item() == 0.0
 
 
+def test_points_give_the_dense_loss_and_gradient(ct, bodies):
+    """``points=``: the loss reads positions at the pairs it needs from a callable (the fitter skins
+    just those); loss, diagnostics and gradient equal the dense call's, on overlapping, far,
+    shallow and coincident frames (the last through the guard, which reads whole frames)."""
+    a = bodies["a"]
+    bs = [place(bodies, dz=HUG_DZ)[1], place(bodies, dx=2.0)[1], place(bodies, dz=BACK_DZ)[1], a]
+    A, B = torch.cat([a] * 4).double(), torch.cat(bs).double()  # float64: summation order does not show
+    grads, results, read = [], [], []
+    for sparse in (False, True):
+        ta = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+        tb = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+        if sparse:
+            def points(body, f, v, shift=(ta, tb)):
+                read.append((body, len(f)))
+                return (A, B)[body][f, v] + shift[body][f]
+
+            r = ct((A + ta[:, None]).detach(), (B + tb[:, None]).detach(), points=points)
+        else:
+            r = ct(A + ta[:, None], B + tb[:, None])
+        r.loss.sum().backward()
+        results.append(r)
+        grads.append((ta.grad.clone(), tb.grad.clone()))
+    dense, sparse = results
+    assert torch.allclose(dense.loss, sparse.loss, rtol=1e-12, atol=0) and dense.loss[0] > 0 and dense.loss[2] > 0
+    assert torch.equal(dense.penetrating, sparse.penetrating) and torch.equal(dense.max_depth_m, sparse.max_depth_m)
+    for g_dense, g_sparse in zip(*grads):
+        assert torch.allclose(g_dense, g_sparse, rtol=1e-10, atol=1e-14)
+    assert grads[0][0][1].abs().max() == 0.0 and grads[0][0][0].abs().max() > 0  # far: nothing; hug: pushed
+    V = A.shape[1]
+    guarded = int(((B.mean(dim=1) - A.mean(dim=1)).norm(dim=1) < ct.guard_m).sum())  # coincident and hug
+    assert guarded == 2 and read[2:] == [(0, guarded * V), (1, guarded * V)]  # the guard reads those frames whole
+    assert 0 < read[0][1] + read[1][1] < 0.5 * 2 * 4 * V  # the contacts: a fraction of the vertices
+    with pytest.raises(ValueError, match="exact method"):
+        CollisionTerm(bodies["faces"], method="grid")(A, B, points=points)
+
+
 def test_keys_reuse_signs_and_give_the_same_answer(bodies):
     """Calls naming their frames reuse the last call's signs where the bodies moved too little to
     change them; every answer equals a fresh term's, through small moves (reuse) and large ones

@@ -33,6 +33,9 @@ def test_body_rig_is_anny_exactly(model):
     rig.add_subset("some", [0, 100, 5000])
     sub = rig.pose(A, transl, "some").vertices
     assert torch.allclose(sub, ref.vertices[:, [0, 100, 5000]], atol=1e-5)
+    # scattered (frame, vertex) pairs, as the collision term reads them
+    f, v = torch.tensor([2, 0, 1, 2]), torch.tensor([13000, 7, 7, 0])
+    assert torch.allclose(rig.skin_at(mine, f, v), ref.vertices[f, v], atol=1e-5)
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
 
 
@@ -146,8 +149,8 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch):
     assert healthy.summary["collision_frames"] == T and healthy.summary["collision_diverged"] == []
     real_call = collision.CollisionTerm.__call__
 
-    def poisoned(self, va, vb, keys=None):
-        r = real_call(self, va, vb, keys)
+    def poisoned(self, va, vb, keys=None, points=None):
+        r = real_call(self, va, vb, keys, points)
         r.loss = r.loss * float("nan")
         return r
 
@@ -183,9 +186,9 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
 
     real_call = collision.CollisionTerm.__call__
 
-    def watch(self, va, vb, keys=None):  # where each evaluation finds the bodies
+    def watch(self, va, vb, keys=None, points=None):  # where each evaluation finds the bodies
         seen.append((len(calls), va.detach().clone()))
-        return real_call(self, va, vb, keys)
+        return real_call(self, va, vb, keys, points)
 
     monkeypatch.setattr(collision.CollisionTerm, "penetration", deeper_after_the_first_pass)
     monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
