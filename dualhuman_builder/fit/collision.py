@@ -481,10 +481,31 @@ class CollisionTerm:
             idx = wp.array(self.obstacle_faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")
             self._pool.append(wp.Mesh(points=pts, indices=idx, support_winding_number=winding))
             self._pool_points.append(pts)
-        for i in range(M) if only is None else only:
-            self._pool_points[i].assign(points[i])
-            self._pool[i].refit()
+        todo = np.arange(M) if only is None else np.asarray(only)
+
+        def refit(rows):
+            for i in rows:
+                self._pool_points[i].assign(points[i])
+                self._pool[i].refit()  # a ctypes call: releases the GIL, so threads refit in parallel
+
+        self._threaded(refit, todo, 4)
         return np.array([self._pool[i].id for i in range(M)], dtype=np.uint64)
+
+    def _threaded(self, fn, items: np.ndarray, min_chunk: int) -> None:
+        """``fn(chunk)`` over contiguous chunks of ``items``, at least ``min_chunk`` each, on up to
+        ``threads`` threads (this one included): for ctypes calls into warp, which release the GIL."""
+        n_chunks = max(1, min(self.threads, len(items) // max(min_chunk, 1)))
+        chunks = [c for c in np.array_split(items, n_chunks) if len(c)]
+        if len(chunks) <= 1:
+            if len(items):
+                fn(items)
+            return
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=self.threads - 1)
+        futures = [self._executor.submit(fn, c) for c in chunks[1:]]
+        fn(chunks[0])  # in this thread, while the others run
+        for fut in futures:
+            fut.result()
 
     def _query(self, mesh_ids: np.ndarray, which: np.ndarray, points: np.ndarray, max_dist) -> tuple:
         """Closest points of ``points (N, 3)`` on meshes ``mesh_ids[which]`` within ``max_dist``.
@@ -506,25 +527,15 @@ class CollisionTerm:
         sd = wp.zeros(N, dtype=wp.float32, device="cpu")
         face = wp.zeros(N, dtype=wp.int32, device="cpu")
         bary = wp.zeros(N, dtype=wp.vec3, device="cpu")
-        n_chunks = max(1, min(self.threads, N // _MIN_CHUNK))
-        bounds = np.linspace(0, N, n_chunks + 1).astype(int)
+        if _closest.key not in _loaded:  # load the module once, before any concurrent launch
+            wp.launch(_closest, dim=1, inputs=[*arrs, 0, winding, sd, face, bary], device="cpu")
+            _loaded.add(_closest.key)
 
-        def run(k):
-            s, e = int(bounds[k]), int(bounds[k + 1])
+        def run(rows):
+            s, e = int(rows[0]), int(rows[-1]) + 1
             wp.launch(_closest, dim=e - s, inputs=[*arrs, s, winding, sd, face, bary], device="cpu")
 
-        if n_chunks == 1:
-            run(0)
-        else:
-            if _closest.key not in _loaded:  # load the module once, before any concurrent launch
-                wp.launch(_closest, dim=1, inputs=[*arrs, 0, winding, sd, face, bary], device="cpu")
-                _loaded.add(_closest.key)
-            if self._executor is None:
-                self._executor = ThreadPoolExecutor(max_workers=self.threads - 1)
-            futures = [self._executor.submit(run, k) for k in range(1, n_chunks)]
-            run(0)  # in this thread, while the others run (ctypes releases the GIL)
-            for fut in futures:
-                fut.result()
+        self._threaded(run, np.arange(N), _MIN_CHUNK)
         wp.synchronize_device("cpu")
         return sd.numpy().copy(), face.numpy().copy(), bary.numpy().copy()
 
@@ -539,10 +550,15 @@ class CollisionTerm:
         Q[0::2], Q[1::2] = Bv, A
         O = np.empty_like(Q)
         O[0::2], O[1::2] = A, Bv
-        ov = O[:, self.obstacle_vertices]
-        lo, hi = ov.min(axis=1), ov.max(axis=1)  # (P, 3) boxes of the obstacle surfaces
-        gap = np.maximum(np.maximum(lo[:, None] - Q, Q - hi[:, None]), 0.0)
-        dbox = np.linalg.norm(gap, axis=2)  # (P, V) lower bound of the distance to the obstacle
+        # (P, 3) boxes of the obstacles (of all their vertices: a box holding the surface is all a lower
+        # bound needs), and (P, V) each query vertex's distance to it, a lower bound of the distance to
+        # the obstacle (torch: vectorised and threaded over these ~1e6-vertex arrays, zero-copy)
+        Ot = torch.from_numpy(O).transpose(1, 2)
+        lo_t, hi_t = Ot.amin(dim=2), Ot.amax(dim=2)
+        Qt = torch.from_numpy(Q)
+        gap = (lo_t[:, None] - Qt).clamp_min_(0.0) + (Qt - hi_t[:, None]).clamp_min_(0.0)  # one is 0
+        dbox = torch.linalg.vector_norm(gap, dim=2).numpy()
+        lo, hi = lo_t.numpy(), hi_t.numpy()
         if self._surface_mask is None or len(self._surface_mask) != V:
             self._surface_mask = np.zeros(V, bool)
             self._surface_mask[self.obstacle_vertices] = True
@@ -566,19 +582,23 @@ class CollisionTerm:
         K, V = A.shape[:2]
         sgn = np.zeros((2 * K, V), np.int8)
         lb = np.zeros((2 * K, V), np.float32)
-        ov = self.obstacle_vertices
-        for k, key in enumerate(fkeys):
-            entry = self._memo.get(key)
-            if entry is None or entry[0].shape != (V, 3):
-                continue
-            a0, b0, s0, l0 = entry
-            da = np.sqrt(((A[k] - a0) ** 2).sum(axis=1))
-            db = np.sqrt(((Bv[k] - b0) ** 2).sum(axis=1))
-            # side 0: b's vertices against a's surface; side 1: a's against b's
-            left = l0 - np.stack([db + da[ov].max(), da + db[ov].max()])
-            keep = left > 1e-6 + 1e-6 * l0  # float32 rounding of the stored bound
-            sgn[2 * k : 2 * k + 2][keep] = s0[keep]
-            lb[2 * k : 2 * k + 2][keep] = left[keep]
+        have = [k for k, key in enumerate(fkeys) if key in self._memo and self._memo[key][0].shape == (V, 3)]
+        if not have:
+            return sgn, lb
+        entries = [self._memo[fkeys[k]] for k in have]
+        rows = np.ravel([[2 * k, 2 * k + 1] for k in have])
+        a0, b0 = (torch.from_numpy(np.stack([e[i] for e in entries])) for i in (0, 1))
+        s0 = np.concatenate([e[2] for e in entries])  # (2n, V), rows as in `rows`
+        l0 = torch.from_numpy(np.concatenate([e[3] for e in entries]))
+        ov = torch.from_numpy(self.obstacle_vertices)
+        da = torch.linalg.vector_norm(torch.from_numpy(A[have]) - a0, dim=2)  # (n, V) how far each vertex moved
+        db = torch.linalg.vector_norm(torch.from_numpy(Bv[have]) - b0, dim=2)
+        # side 0: b's vertices against a's surface; side 1: a's against b's
+        move = torch.stack([db + da[:, ov].amax(dim=1, keepdim=True), da + db[:, ov].amax(dim=1, keepdim=True)], 1)
+        left = (l0 - move.reshape(-1, V)).numpy()
+        keep = left > 1e-6 + 1e-6 * l0.numpy()  # float32 rounding of the stored bound
+        sgn[rows] = np.where(keep, s0, 0)
+        lb[rows] = np.where(keep, left, 0.0)
         return sgn, lb
 
     def _remember(self, fkeys: list, A: np.ndarray, Bv: np.ndarray, sgn: np.ndarray, lb: np.ndarray) -> None:
@@ -647,7 +667,9 @@ class CollisionTerm:
             # (2) sign flood fill along the query mesh's edges that cannot cross the obstacle
             e0, e1 = self.edges[:, 0], self.edges[:, 1]
             unknown = (sgn == 0).reshape(P, V)
-            pp, ee = np.nonzero(unknown[:, e0] | unknown[:, e1])
+            rows = np.flatnonzero(unknown.any(axis=1))  # problems with something to fill
+            pp, ee = np.nonzero(unknown[rows][:, e0] | unknown[rows][:, e1])
+            pp = rows[pp]
             u, w = pp * V + e0[ee], pp * V + e1[ee]
             length = np.linalg.norm(Qf[u] - Qf[w], axis=1)
             safe = lb[u] + lb[w] > length * (1.0 + 1e-4) + 1e-6
