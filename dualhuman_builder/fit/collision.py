@@ -64,8 +64,9 @@ Method ``"warp"`` (default): exact depths, banded query and sign flood fill
     with none gets one full query. A component with members known on both sides (a pseudonormal
     sign gone wrong where the obstacle crosses itself) gets a full query per open member: before,
     it took whichever sign came last (on the fit benchmark's hug one frame read 18.8 mm deep where
-    the winding number says 20.8; on a noise-posed pair 437 vertices were on the wrong side, 138 now). Fewer far vertices get a full query each. (3) Far vertices
-    found inside get a full query for their depth. Queries run in warp CPU kernels split over
+    the winding number says 20.8; on a noise-posed pair 437 vertices were on the wrong side, 138
+    now). Fewer far vertices get a full query each. (3) Far vertices found inside get a full
+    query for their depth. Queries run in warp CPU kernels split over
     ``threads`` threads.
 
 Reuse across calls (``keys``)
