@@ -18,7 +18,9 @@ quadratic); ``transl`` starts at the fused pelvis position. The skeleton terms u
 :class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
 few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
 penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
-and only those frames get the collision pass. Frames far apart pay nothing. The collision term is
+and only those frames get the collision pass (their full meshes skinned without gradient, to find the
+contacts; the few thousand (frame, vertex) pairs the loss reads are skinned again with it,
+:meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`). Frames far apart pay nothing. The collision term is
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
 one where the bodies moved too little to change them (the same answer wherever the pseudonormal sign
 is well defined; see :mod:`~dualhuman_builder.fit.collision`). A collision pass whose line search steps
