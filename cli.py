@@ -772,8 +772,8 @@ def contacts(workspace: Path, take: str, threshold: float, band: float, workers:
 
     For every frame, the signed distance of each body's vertices to the other body's surface
     (libigl, pseudonormal sign, within --band; frames whose bodies' boxes are farther apart are
-    skipped, and a warp BVH picks the vertices and faces libigl must look at), both ways. Writes contacts.npz (per-vertex labels, bit-packed;
-    float16 distances; per-frame flag) and contacts.json (region-level contact events: body-part
+    skipped, and a warp BVH picks the vertices and faces libigl must look at), both ways. Writes
+    contacts.npz (per-vertex labels, bit-packed; float16 distances; per-frame flag) and contacts.json (region-level contact events: body-part
     pairs with start and end frames, like CHI3D's signatures; counts; speed).
 
     Example:  dualhuman contacts WS --take T001

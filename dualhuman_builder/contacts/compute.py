@@ -397,11 +397,9 @@ def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: 
     """Yields ``(t, result)`` for each index ``t`` of ``frames`` in order, in this thread:
     ``result`` is :func:`_frame_result`'s tuple, or None when the bodies are farther apart than
     ``band``. ``counts`` accumulates the query counts; ``on_done()`` after each frame."""
-    selector = _selector(topo)
     for t in frames:
-        A, B = _as_frame(topo, verts_a[t], verts_b[t])
-        selection = _select(topo, A, B, band, selector)
-        result = None if selection is None else _frame_result(topo, _finish(topo, A, B, selection, band, counts), threshold)
+        frame = contact_frame(topo, verts_a[t], verts_b[t], band, counts)
+        result = None if frame is None else _frame_result(topo, frame, threshold)
         if on_done is not None:
             on_done()
         yield int(t), result
@@ -487,7 +485,6 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     far_frames = done = 0
     frames = np.flatnonzero(finite)
     step = max(1, math.ceil(len(frames) / 10))
-
 
     def tick():
         nonlocal done

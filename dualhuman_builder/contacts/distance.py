@@ -3,9 +3,8 @@
 A warp BVH is built once per body, on the first frame's vertices, and refit per frame (a BVH
 built on placeholder vertices all at one point and then refit made every query walk most of the
 tree: 7.2 frame pairs/s on a hug's contact frames, 30.7 once built on real ones, 2-core CPU);
-``mesh_query_point_sign_normal`` then
-gives, for each query point within ``band`` of the surface, the distance to the closest point with
-the pseudonormal sign (negative inside). ``tests/test_scenes.py`` checks it against
+``mesh_query_point_sign_normal`` then gives, for each query point within ``band`` of the surface,
+the distance to the closest point with the pseudonormal sign (negative inside). ``tests/test_scenes.py`` checks it against
 ``igl.signed_distance`` (pseudonormal) within 1e-4 m on scene distances stored as float16.
 Both directions with the broad phase below: 27.5 frame pairs/s on a hug's contact frames, 52.7 on a
 handshake's (``benchmarks/bench_contacts.py``, row c, 2-core CPU).

@@ -492,7 +492,7 @@ class CollisionTerm:
                 self._pool_points[i].assign(points[i])
                 self._pool[i].refit()  # a ctypes call: releases the GIL, so threads refit in parallel
 
-        self._threaded(refit, todo, 4)
+        self._threaded(refit, todo, 4)  # a refit is ~0.5 ms: four a thread outweigh handing them over
         return np.array([self._pool[i].id for i in range(M)], dtype=np.uint64)
 
     def _threaded(self, fn, items: np.ndarray, min_chunk: int) -> None:

@@ -251,7 +251,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     dtransl = [torch.zeros(T, 3, device=dev) for _ in acts]
     # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same
     # answers as the 1 cm default, but vertices keep a known sign over larger moves between L-BFGS
-    # evaluations, so fewer need the sign flood fill (replaying a hug fit's 90 calls: 14.7 s -> 10.8 s)
+    # evaluations, so fewer need the sign flood fill (benchmarks/bench_fit_collision.py: 1.1-1.4x, identical depths)
     collide = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01) if (cfg.collision and len(acts) == 2) else None
     pen_before = np.zeros(T)
     pen_share_before = np.zeros(T)
