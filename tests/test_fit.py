@@ -39,6 +39,45 @@ def test_body_rig_is_anny_exactly(model):
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
 
 
+def test_hand_opening_is_anny_and_the_scenes_flat_hand(model):
+    from dualhuman_builder.body.hands import OPENINGS
+    from dualhuman_builder.sim.performer import Performer
+
+    shape = {"gender": 0.2, "height": 0.7, "weight": 0.3}
+    rig = BodyRig(model, shape)
+    torch.manual_seed(2)
+    A = roma.rotvec_to_rotmat(torch.randn(3, 23, 3) * 0.5)
+    transl = torch.randn(3, 3)
+    opening = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0], [0.3, -0.2, 0.8, 0.5]], requires_grad=True)
+    mine = rig.pose(A, transl, opening=opening)
+    ref = model.forward(rig.local_pose(A, opening), rig.shape, transl)
+    assert (mine.vertices - ref.vertices).norm(dim=-1).max() < 1e-5
+    assert (mine.heads - ref.bone_heads).abs().max() < 1e-5
+    plain = rig.pose(A, transl)
+    names = model.bone_names
+    thumb_l = [i for i, n in enumerate(names) if n.startswith("finger1-") and n.endswith(".L")]
+    moved = (mine.vertices - plain.vertices).norm(dim=-1)  # (3, V)
+    assert moved[0].max() < 1e-6  # opening 0 is the relaxed hand
+    assert moved[1].max() > 0.02  # flat: fingertips move by centimetres ...
+    vb = torch.as_tensor(model.vertex_bone())
+    hand = [i for i, n in enumerate(names) if n.startswith(("finger", "metacarpal", "wrist"))]
+    assert moved[1][~torch.isin(vb, torch.as_tensor(hand))].max() < 1e-6  # nothing but the hands
+    assert (mine.heads[1, thumb_l[1:]] - plain.heads[1, thumb_l[1:]]).norm(dim=-1).min() > 0.005  # ... the thumb too
+    # each slot moves its own bones and has a gradient there
+    mine.vertices[2, vb == thumb_l[-1]].sum().backward()
+    assert opening.grad[2, OPENINGS.index("thumb.L")] != 0 and opening.grad[2, OPENINGS.index("fingers.R")] == 0
+    # opening 1 is the pose the scenes give a palm resting on the partner
+    perf = Performer(model, shape)
+    local = torch.eye(3, dtype=torch.float64).repeat(1, len(names), 1, 1)
+    for side in ("L", "R"):
+        for bone, rot in perf.flat_hand[side].items():
+            local[0, bone] = torch.as_tensor(rot)
+    flat = model.forward(local.float(), rig.shape, torch.zeros(1, 3)).vertices[0]
+    eye = torch.eye(3).expand(1, 23, 3, 3)
+    ours = rig.pose(eye, torch.zeros(1, 3), opening=torch.ones(1, 4)).vertices[0]
+    assert (ours - flat).norm(dim=-1).max() < 1e-5
+
+
 def test_shape_calibration_recovers_the_skeleton(model):
     from dualhuman_builder.sim.groundtruth import segment_kinematics
     from dualhuman_builder.tracks import BodyTrack
@@ -90,6 +129,9 @@ def test_full_path_on_a_simulated_take(recorded, model):
     # within the issue's 5 mm whatever the recording's timing
     assert ev["max_penetration_before_mm"] > 10 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
     assert ev["penetrating_share"] < 0.5 * ev["penetrating_share_before"]
+    # the suit gives no fingers: the collision passes opened the clasped hands, within the openings' range
+    opening = np.stack([tf.fit.frames[f"hand opening (0 relaxed, 1 flat)/{a}"] for a in ("sim-a", "sim-b")])
+    assert opening.shape == (2, ev["frames"]) and opening.max() > 0.05 and opening.max() <= 1.01, opening.max(1)
     seq = tf.fit.sequence
     assert [t.actor for t in seq.actors] == ["sim-a", "sim-b"] and seq.num_frames == ev["frames"]
     assert np.isfinite(np.asarray(seq.actors[0].pose)).all()
@@ -136,15 +178,16 @@ def _overlapping_pair(T: int) -> list:
             for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
 
 
-def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch):
-    """Two bodies on one spot: the collision pass runs. If its loss turns non-finite, the line
-    search steps to NaN corrections; the fitter undoes the pass and reports it, never returning
-    NaN bodies or crashing."""
+@pytest.mark.parametrize("hands", [True, False])
+def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch, hands):
+    """Two bodies on one spot: the collision passes run (the hands' first, when the fit may open
+    them). If the loss turns non-finite, the line search steps to NaN corrections; the fitter undoes
+    the pass and reports it, never returning NaN bodies or crashing."""
     from dualhuman_builder.fit import collision
 
     T = 4
     inputs = _overlapping_pair(T)
-    cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2)
+    cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=hands)
     healthy = fit_actors(model, inputs, 15.0, cfg)
     assert healthy.summary["collision_frames"] == T and healthy.summary["collision_diverged"] == []
     real_call = collision.CollisionTerm.__call__
@@ -156,8 +199,9 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch):
 
     monkeypatch.setattr(collision.CollisionTerm, "__call__", poisoned)
     res = fit_actors(model, inputs, 15.0, cfg)
-    # windows of 4 frames overlapping by 4 start at every frame: each one's first round is undone
-    assert res.summary["collision_diverged"] == [f"frames {s}-3, collision round 1" for s in range(T)]
+    # windows of 4 frames overlapping by 4 start at every frame: each one's first pass is undone
+    first = "the hands' collision pass" if hands else "collision round 1"
+    assert res.summary["collision_diverged"] == [f"frames {s}-3, {first}" for s in range(T)]
     for track in res.sequence.actors:
         assert np.isfinite(np.asarray(track.pose)).all() and np.isfinite(np.asarray(track.transl)).all()
     # undone: the bodies are where the skeleton pass left them, still overlapping
@@ -173,7 +217,8 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
 
     T = 2
     inputs = _overlapping_pair(T)
-    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2)
+    # the rounds only (the hands' pass, which comes first, is undone by the same rule)
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=False)
     real = collision.CollisionTerm.penetration
     calls, seen = [], []
 

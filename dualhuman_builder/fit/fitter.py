@@ -9,12 +9,17 @@ the previous window's last frames), by L-BFGS on::
                    + sum_trackers |site - p_tracker|^2 / s_t^2  tracker positions (drift-free reference)
                    + sum_joints |accel|^2 / s_a^2            temporal smoothness (22 joints)
                    + sum_soles relu(-y)^2 / s_f^2             no foot below the floor
-                   + sum_stance |sole step|^2 / s_s^2         no sliding while a foot is in stance ]
+                   + sum_stance |sole step|^2 / s_s^2         no sliding while a foot is in stance
+                   + sum_hands (o / s_h)^2 + |o''|^2 / s_ha^2  hand openings: relaxed unless pushed ]
       + w_c * collision(verts_a, verts_b)                     SDF term, frames where the bodies are close
 
 ``delta (S, 3)``: a world-frame rotation vector applied to each driven bone's retargeted global
 rotation (so the orientation data term and the pose regulariser toward the retarget are the same
-quadratic); ``transl`` starts at the fused pelvis position. The skeleton terms use the
+quadratic); ``transl`` starts at the fused pelvis position. ``o (4,)`` per frame: the openings of
+each hand's thumb and fingers (:mod:`dualhuman_builder.body.hands`; 0 anny's relaxed hand, 1 flat,
+kept within [-0.5, 1]). The suit measures no fingers, so only the collision term moves them: a palm
+resting on the partner opens flat instead of leaving the relaxed thumb and fingertips inside them
+(the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). The skeleton terms use the
 :class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
 few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
 penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
@@ -92,7 +97,17 @@ class FitConfig:
     stance_speed_m_s: float = 0.15
     #: ... and its sole is within this height of the floor (m)
     stance_height_m: float = 0.03
+    #: let the collision passes open the hands (thumb and fingers, :mod:`dualhuman_builder.body.hands`)
+    hand_opening: bool = True
+    #: prior on each opening (0 relaxed, 1 flat): opening a hand flat costs as much as a tracker 8 mm off
+    sigma_hand_opening: float = 0.5
+    #: second difference of the openings, per s^2 (scaled by fps like the joint acceleration)
+    sigma_hand_opening_accel_s2: float = 40.0
     device: str = "cpu"
+
+
+#: the range the hand openings are held in (soft walls): a little more curled than relaxed, to flat
+OPENING_RANGE = (-0.5, 1.0)
 
 
 @dataclass
@@ -186,17 +201,18 @@ class _Actor:
         self.stance = torch.as_tensor(stance_mask(ankles, fps, ankle_h - sole_h, cfg), device=dev)
         self.joints = self.rig.model.joint22_index.to(dev)
 
-    def pose(self, delta, dtransl, sl, vertices="soles"):
+    def pose(self, delta, dtransl, sl, vertices="soles", opening=None):
         """Bones (and ``vertices``) of timeline frames ``sl`` (a slice or an index tensor) with the
-        corrections ``delta (n, 23, 3)`` rotation vectors and ``dtransl (n, 3)`` metres."""
+        corrections ``delta (n, 23, 3)`` rotation vectors and ``dtransl (n, 3)`` metres, and the
+        hand openings ``opening (n, 4)`` (None: relaxed hands)."""
         rot = roma.rotvec_to_rotmat(delta) @ self.target[sl]
-        return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices)
+        return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices, opening)
 
 
-def _energy(act: _Actor, delta, dtransl, sl: slice, ctx, cfg: FitConfig, fps: float):
-    """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles) of the two frames
-    before ``sl`` (fixed, from the previous window) or None. Returns (energy, posed, rot)."""
-    rot, posed = act.pose(delta, dtransl, sl)
+def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float):
+    """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles, openings) of the two
+    frames before ``sl`` (fixed, from the previous window) or None. Returns (energy, posed, rot)."""
+    rot, posed = act.pose(delta, dtransl, sl, opening=opening)
     valid = act.valid[sl].float()
     s_o = np.radians(cfg.sigma_orientation_deg)
     e = (delta.pow(2).sum((-1, -2)) * valid).sum() / s_o**2
@@ -224,6 +240,13 @@ def _energy(act: _Actor, delta, dtransl, sl: slice, ctx, cfg: FitConfig, fps: fl
         step = (feet[1:] - feet[:-1])[..., [0, 2]].pow(2).sum(-1)
         both = (stance[1:] & stance[:-1]).float()
         e = e + (step * both).sum() / cfg.sigma_slide_m**2
+    lo, hi = OPENING_RANGE
+    e = e + opening.pow(2).sum() / cfg.sigma_hand_opening**2
+    e = e + (torch.relu(opening - hi).pow(2) + torch.relu(lo - opening).pow(2)).sum() / 0.01**2
+    o = torch.cat([ctx[2], opening], 0) if ctx is not None else opening
+    if o.shape[0] >= 3:
+        s_h = cfg.sigma_hand_opening_accel_s2 / fps**2
+        e = e + (o[2:] - 2 * o[1:-1] + o[:-2]).pow(2).sum() / s_h**2
     return e, posed, rot
 
 
@@ -249,6 +272,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     S = len(MVN_SEGMENTS)
     deltas = [torch.zeros(T, S, 3, device=dev) for _ in acts]
     dtransl = [torch.zeros(T, 3, device=dev) for _ in acts]
+    openings = [torch.zeros(T, 4, device=dev) for _ in acts]
+    P = 3  # optimised tensors per actor: delta, dtransl, opening
     # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same
     # answers as the 1 cm default, but vertices keep a known sign over larger moves between L-BFGS
     # evaluations, so fewer need the sign flood fill (benchmarks/bench_fit_collision.py: 1.1-1.4x, identical depths)
@@ -270,24 +295,33 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             for k, a in enumerate(acts):
                 if ctx_n:
                     csl = slice(s0 - ctx_n, s0)
-                    _, p = a.pose(deltas[k][csl], dtransl[k][csl], csl)
-                    ctxs.append((p.heads[:, a.joints], p.vertices))
+                    _, p = a.pose(deltas[k][csl], dtransl[k][csl], csl, opening=openings[k][csl])
+                    ctxs.append((p.heads[:, a.joints], p.vertices, openings[k][csl]))
                 else:
                     ctxs.append(None)
         params = []
         for k in range(len(acts)):
-            params += [deltas[k][sl].clone().requires_grad_(True), dtransl[k][sl].clone().requires_grad_(True)]
+            params += [t[sl].clone().requires_grad_(True) for t in (deltas[k], dtransl[k], openings[k])]
+        if not cfg.hand_opening:
+            for k in range(len(acts)):
+                params[P * k + 2].requires_grad_(False)
+        opt_params = [p for p in params if p.requires_grad]
+
+        def pose_all(idx, vertices=True):
+            """Both actors' posed bodies at window rows ``idx`` (a slice or index tensor)."""
+            return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), vertices, params[P * k + 2][idx])[1]
+                    for k, a in enumerate(acts)]  # fmt: skip
 
         def skeleton_energy():
             total = 0.0
             outs = []
             for k, a in enumerate(acts):
-                e, posed, rot = _energy(a, params[2 * k], params[2 * k + 1], sl, ctxs[k], cfg, fps)
+                e, posed, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps)
                 total = total + e
                 outs.append((posed, rot))
             return total, outs
 
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(opt_params, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
 
         def closure():
             opt.zero_grad()
@@ -298,7 +332,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
         opt.step(closure)
         if collide is not None:
             with torch.no_grad():
-                verts = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                verts = [p.vertices for p in pose_all(slice(None))]
                 pen = collide.penetration(verts[0], verts[1], keys=range(s0, s1))
             pen_before[sl] = pen["max_depth_m"]
             pen_share_before[sl] = pen["share"]
@@ -309,9 +343,15 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             # that round's corrections
             best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params])
 
-            for _round in range(max(int(cfg.collision_rounds), 1) if len(hit) else 0):
+            # the hands first: their openings have no data term, so they give way before any bone the
+            # suit and trackers hold (and cannot swing an arm through the partner's, as a full pass can)
+            hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
+            passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
+            for _round, what in enumerate(passes if len(hit) else []):
                 hit_t = torch.as_tensor(hit, device=dev)
-                copt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+                free = hands if what == "hands" else opt_params
+                copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+                label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {_round + 1 - len(hands) // 2}")
 
                 def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
                     if not _finite(params):
@@ -321,8 +361,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     # the full meshes, without gradient, only locate the contacts; the loss reads a few
                     # thousand (frame, vertex) pairs, skinned again with the gradient (skin_at)
                     with torch.no_grad():
-                        vs = [a.pose(params[2 * k][hit_t], params[2 * k + 1][hit_t], s0 + hit_t, True)[1].vertices
-                              for k, a in enumerate(acts)]  # fmt: skip
+                        vs = [p.vertices for p in pose_all(hit_t)]
 
                     def at(body, f, v):
                         return acts[body].rig.skin_at(outs[body][0], hit_t[f], v)
@@ -339,14 +378,14 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 if not _finite(params):
                     # the line search stepped to non-finite corrections: keep the best round's answer
                     _restore(params, best[1])
-                    diverged.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}")
+                    diverged.append(label)
                     break
                 # how deep one pass leaves a frame depends on where it started, so frames still deeper than
                 # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
                 # the term: released, it would spring back (the other terms still pull it in) while its
                 # neighbours are refitted. Frames pushed into contact by their neighbours join.
                 with torch.no_grad():
-                    vs = [a.pose(params[2 * k], params[2 * k + 1], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                    vs = [p.vertices for p in pose_all(slice(None))]
                     left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
                 rounds_used = max(rounds_used, _round + 1)
                 if left.max() > best[0]:
@@ -354,17 +393,17 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
                     # the next round starts again from the best answer, with the term weighted up
                     _restore(params, best[1])
-                    worsened.append(f"frames {s0}-{s1 - 1}, collision round {_round + 1}: "
-                                    f"{1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")  # fmt: skip
+                    worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                 else:
                     best = (float(left.max()), [p.detach().clone() for p in params])
                     if left.max() <= cfg.collision_tolerance_m:
                         break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
-                weight *= 4.0
+                if what == "all":
+                    weight *= 4.0
         for k in range(len(acts)):  # overlapping frames take the later window's answer
-            deltas[k][sl] = params[2 * k].detach()
-            dtransl[k][sl] = params[2 * k + 1].detach()
+            for j, t in enumerate((deltas[k], dtransl[k], openings[k])):
+                t[sl] = params[P * k + j].detach()
         say(f"window {wi + 1}/{len(starts)}: frames {s0}-{s1 - 1}")
     seconds = time.perf_counter() - t_start
 
@@ -376,9 +415,10 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
         with torch.no_grad():
             rot = roma.rotvec_to_rotmat(deltas[k]) @ a.target
             transl = a.transl0 + dtransl[k]
-            pose = a.rig.local_pose(rot).cpu().numpy()
+            pose = a.rig.local_pose(rot, openings[k]).cpu().numpy()
             ang = np.degrees(deltas[k].norm(dim=-1).mean(-1).cpu().numpy())
             frames[f"orientation change (deg)/{a.name}"] = np.where(a.valid.cpu().numpy(), ang, np.nan)
+            frames[f"hand opening (0 relaxed, 1 flat)/{a.name}"] = openings[k].abs().max(-1).values.cpu().numpy()
             if len(a.trk_seg):
                 posed = a.rig.pose(rot, transl, False)
                 seg_frame = rot[:, a.trk_seg] @ a.rig.seg_frame[a.trk_seg]
@@ -394,7 +434,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
         for s0 in range(0, T, 64):
             sl = slice(s0, min(s0 + 64, T))
             with torch.no_grad():
-                vs = [a.pose(deltas[k][sl], dtransl[k][sl], sl, vertices=True)[1].vertices for k, a in enumerate(acts)]
+                vs = [a.pose(deltas[k][sl], dtransl[k][sl], sl, True, openings[k][sl])[1].vertices for k, a in enumerate(acts)]
                 pen = collide.penetration(vs[0], vs[1], keys=range(sl.start, sl.stop))
             pen_after[sl] = pen["max_depth_m"]
             share_after[sl] = pen["share"]
@@ -410,6 +450,13 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),
                        penetrating_share_before=float(pen_share_before.max()), penetrating_share_after=float(share_after.max()))  # fmt: skip
     return FitResult(seq if seq is not None else tracks, frames, summary, valid)
+
+
+def _rows(sl: slice, idx):
+    """Timeline frames of window rows ``idx`` (a slice of the window or an index tensor)."""
+    if isinstance(idx, slice):
+        return slice(sl.start + (idx.start or 0), sl.start + (idx.stop if idx.stop is not None else sl.stop - sl.start))
+    return sl.start + idx
 
 
 def _config_dict(cfg: FitConfig) -> dict:

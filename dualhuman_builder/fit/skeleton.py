@@ -8,7 +8,9 @@ Parameterisation (Y-up world, metres)
     ``A (B, S, 3, 3)``: the world-aligned global rotation (see :mod:`dualhuman_builder.body.model`)
     of the anny bone each of the ``S = 23`` MVN segments drives (``rigs/mvn_anny.toml``); every other
     anny bone (twist bones, spine05, fingers...) follows its nearest driven ancestor (zero local
-    rotation), as the mapping's comments say. ``transl (B, 3)``: the root bone head (pelvis centre).
+    rotation), as the mapping's comments say — except that four *hand openings* (thumb and fingers
+    of each hand, :mod:`dualhuman_builder.body.hands`) may straighten the fingers towards a flat
+    hand. ``transl (B, 3)``: the root bone head (pelvis centre).
 
 Positions
     bone heads ``h_j = transl + sum over the edges e on the path root->j of A_parent(e) (h0_e - h0_parent(e))``
@@ -120,6 +122,43 @@ class BodyRig:
         self.num_vertices = int(rest_v.shape[0])
         self._subsets: dict = {}
         self.set_vertices(None)
+        self._init_hands(model)
+
+    def _init_hands(self, model) -> None:
+        """The finger bones the four hand openings move (:mod:`dualhuman_builder.body.hands`):
+        per bone its open-hand rotation vector and opening slot, and every bone below one of them
+        (they inherit the change), grouped by depth so :meth:`bone_rotations` walks down the
+        fingers level by level."""
+        from dualhuman_builder.body.hands import open_hand, opening_slot
+
+        with torch.no_grad():
+            rest = model.rest(self.shape[None])
+        heads = rest.bone_heads[0].double().cpu().numpy()
+        verts = rest.vertices[0].double().cpu().numpy()
+        names, parents = list(model.bone_names), np.asarray(model.bone_parents)
+        rv, slot = {}, {}
+        for side in ("L", "R"):
+            for b, R in open_hand(names, parents, heads, verts, model.vertex_bone(), side).items():
+                rv[b] = roma.rotmat_to_rotvec(torch.as_tensor(R)).numpy()
+                slot[b] = opening_slot(names, b)
+        moved = set(rv)
+        for j in range(len(parents)):  # parents precede children in anny's bone order
+            if parents[j] >= 0 and parents[j] in moved:
+                moved.add(j)
+        depth = {}
+        for j in sorted(moved):
+            depth[j] = depth.get(int(parents[j]), 0) + 1
+        order = sorted(moved)
+        self._open_rv = torch.as_tensor(np.array([rv.get(j, np.zeros(3)) for j in order]), device=self.device, dtype=self.dtype)
+        self._open_slot = torch.as_tensor([slot.get(j, 0) for j in order], device=self.device)
+        self._open_gate = torch.as_tensor([float(j in rv) for j in order], device=self.device, dtype=self.dtype)
+        self._open_levels = []
+        for d in sorted(set(depth.values())):
+            pos = [i for i, j in enumerate(order) if depth[j] == d]
+            bones = [order[i] for i in pos]
+            self._open_levels.append((torch.as_tensor(bones, device=self.device),
+                                      torch.as_tensor(parents[bones], device=self.device),
+                                      torch.as_tensor(pos, device=self.device)))  # fmt: skip
 
     def set_vertices(self, vertex_ids) -> None:
         """Skin only ``vertex_ids`` (None: all) in :meth:`pose`."""
@@ -132,19 +171,31 @@ class BodyRig:
             self._u, self._idx, self._w = self._u_all[ids], self._idx_all[ids], self._w_all[ids]
 
     # ------------------------------------------------------------------ forward
-    def bone_rotations(self, seg_rot: torch.Tensor) -> torch.Tensor:
-        """``(B, S, 3, 3)`` driven-bone rotations -> ``(B, J, 3, 3)`` for every anny bone."""
-        return seg_rot[:, self.owner]
+    def bone_rotations(self, seg_rot: torch.Tensor, opening: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, S, 3, 3)`` driven-bone rotations -> ``(B, J, 3, 3)`` for every anny bone.
+        ``opening (B, 4)`` (:data:`~dualhuman_builder.body.hands.OPENINGS`; None: all 0) opens the
+        fingers: each moved finger bone's local rotation is its open-hand rotation with the angle
+        scaled by its opening (0 the relaxed rest hand, 1 flat), differentiably."""
+        rot = seg_rot[:, self.owner]
+        if opening is None:
+            return rot
+        rv = (opening[:, self._open_slot] * self._open_gate)[..., None] * self._open_rv  # (B, M, 3)
+        local = roma.rotvec_to_rotmat(rv)
+        for bones, parents, pos in self._open_levels:
+            rot = rot.index_copy(1, bones, rot[:, parents] @ local[:, pos])
+        return rot
 
     def add_subset(self, name: str, vertex_ids) -> None:
         """Register a named vertex subset that :meth:`pose` can skin with ``vertices=name``."""
         ids = torch.as_tensor(np.asarray(vertex_ids, dtype=np.int64), device=self.device)
         self._subsets[name] = (self._u_all[ids], self._idx_all[ids], self._w_all[ids])
 
-    def pose(self, seg_rot: torch.Tensor, transl: torch.Tensor, vertices: bool | str = True) -> Posed:
-        """Pose ``seg_rot (B, S, 3, 3)``, ``transl (B, 3)``. ``vertices``: True skins the current
-        vertex set (:meth:`set_vertices`), a name skins a subset from :meth:`add_subset`, False none."""
-        rot = self.bone_rotations(seg_rot)
+    def pose(self, seg_rot: torch.Tensor, transl: torch.Tensor, vertices: bool | str = True,
+             opening: torch.Tensor | None = None) -> Posed:  # fmt: skip
+        """Pose ``seg_rot (B, S, 3, 3)``, ``transl (B, 3)``, hand ``opening (B, 4)`` or None (see
+        :meth:`bone_rotations`). ``vertices``: True skins the current vertex set
+        (:meth:`set_vertices`), a name skins a subset from :meth:`add_subset`, False none."""
+        rot = self.bone_rotations(seg_rot, opening)
         parent_rot = rot[:, self.parents.clamp(min=0)]
         e = (parent_rot @ self.edges[None, :, :, None])[..., 0]  # (B, J, 3); root's edge is zero
         heads = transl[:, None, :] + torch.einsum("jk,bkd->bjd", self.path, e)
@@ -186,9 +237,9 @@ class BodyRig:
         rotations ``A = R_seg S^T``."""
         return seg_frames @ self.seg_frame.transpose(-1, -2)
 
-    def local_pose(self, seg_rot: torch.Tensor) -> torch.Tensor:
+    def local_pose(self, seg_rot: torch.Tensor, opening: torch.Tensor | None = None) -> torch.Tensor:
         """anny pose parameters ``(B, J, 3)`` rotation vectors (what a BodyTrack stores)."""
-        rot = self.bone_rotations(seg_rot)
+        rot = self.bone_rotations(seg_rot, opening)
         return roma.rotmat_to_rotvec(self.model.global_to_local(rot))
 
 
@@ -204,3 +255,4 @@ def sole_vertices(model, per_foot: int = 40) -> dict[str, np.ndarray]:
         cand = np.flatnonzero(np.isin(bone_of, feet))
         out[side] = cand[np.argsort(rest[cand, 1])[:per_foot]]
     return out
+

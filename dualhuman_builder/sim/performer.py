@@ -91,7 +91,9 @@ class Performer:
         regions = load_regions(model)
         self.hand = {s: _hand_geometry(sk, verts, regions.vertices_of(("left" if s == "L" else "right") + "_hand"), s)
                      for s in SIDES}  # fmt: skip
-        self.flat_hand = {s: _flat_hand(sk, verts, model.vertex_bone(), self.hand[s], s) for s in SIDES}
+        from dualhuman_builder.body.hands import open_hand
+
+        self.flat_hand = {s: open_hand(sk.names, sk.parents, r, verts, model.vertex_bone(), s) for s in SIDES}
         self.ankle_height = {s: r[sk.index(f"foot.{s}"), 1] + self.floor_offset for s in SIDES}
         self.hip_half_width = abs(r[sk.index("upperleg01.L"), 0])
         trunk = ("head", "neck", "chest", "upper_back", "abdomen", "lower_back", "pelvis_front", "buttocks")
@@ -270,45 +272,12 @@ class _HandGeometry:
     palm_vertex: int  # the mesh vertex at the palm centre
 
 
-def _flat_hand(sk: Skeleton, verts: np.ndarray, vertex_bone: np.ndarray, hand: _HandGeometry, side: str) -> dict:
-    """Local rotations ``{bone index: (3, 3)}`` that straighten the fingers along their
-    metacarpals and lay the thumb in the palm plane, 35 degrees off the middle finger."""
-    r = sk.rest
-    out = {}
-
-    def direction(i: int) -> np.ndarray:
-        kids = [c for c in range(len(sk.parents)) if sk.parents[c] == i]
-        if kids:
-            return normalize(r[kids[0]] - r[i])
-        own = verts[vertex_bone == i]  # a fingertip: towards its own vertices' centre
-        return normalize(own.mean(0) - r[i])
-
-    from dualhuman_builder.sim.ik import map_frames
-
-    def minimal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        axis = np.cross(a, b)
-        if np.linalg.norm(axis) < 1e-9:
-            return np.eye(3)
-        return map_frames(a, axis, b, axis)
-
-    for f in range(1, 6):
-        chain = [sk.index(f"finger{f}-{k}.{side}") for k in (1, 2, 3)]
-        if f == 1:  # the thumb: into the palm plane, angled away from the fingers
-            base = r[chain[0]] - r[sk.index(f"wrist.{side}")]
-            out_dir = normalize(base - (base @ hand.normal0) * hand.normal0 - (base @ hand.fingers0) * hand.fingers0)
-            target = normalize(np.cos(np.radians(35)) * hand.fingers0 + np.sin(np.radians(35)) * out_dir)
-            out[chain[0]] = minimal(direction(chain[0]), target)
-        for parent, child in zip(chain[:-1], chain[1:]):
-            out[child] = minimal(direction(child), direction(parent))
-    return out
-
-
 def _hand_geometry(sk: Skeleton, verts: np.ndarray, hand_vertices: np.ndarray, side: str) -> _HandGeometry:
+    from dualhuman_builder.body.hands import hand_axes
+
     r = sk.rest
     wrist, knuckle = r[sk.index(f"wrist.{side}")], r[sk.index(f"finger3-1.{side}")]
-    across = r[sk.index(f"finger2-1.{side}")] - r[sk.index(f"finger5-1.{side}")]  # pinky -> index
-    fingers0 = normalize(knuckle - wrist)
-    normal0 = normalize(SIDES[side] * np.cross(fingers0, across))
+    fingers0, normal0 = hand_axes(sk.names, r, side)
     centre = wrist + 0.55 * (knuckle - wrist)
     v = verts[hand_vertices] - centre
     along = v @ normal0
