@@ -167,6 +167,40 @@ def test_identical_position_is_pushed_apart(ct, bodies):
     assert ct(a + ta2[:, None], a + tb2[:, None]).loss.item() < r.loss.item()
 
 
+def test_guard_compares_the_torsos_so_a_close_hug_pays_nothing(body_model, bodies):
+    """The simulated hug of seed 2 brings the whole bodies' centroids within 10 cm (arms wrapped round
+    the partner) while the torsos stay ~25 cm apart: the whole-body guard fires there and pushes the
+    bodies apart against the data; the torso guard the fitter uses does not, and still separates
+    coincident bodies."""
+    from dualhuman_builder.fit.skeleton import torso_vertices
+    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+
+    torso = torso_vertices(body_model)
+    bones = np.asarray(body_model.bone_names)[body_model.vertex_bone()[torso]]
+    assert 1000 < len(torso) < 2000 and all(b.startswith(("root", "pelvis", "spine")) for b in bones)
+    a, b = make_scene(SceneParams(type="hug", seed=2, fps=5)).sequence.actors
+    va, vb = torch.tensor(a.vertices()), torch.tensor(b.vertices())
+    whole = (vb.mean(1) - va.mean(1)).norm(dim=1)
+    core = (vb[:, torso].mean(1) - va[:, torso].mean(1)).norm(dim=1)
+    close = torch.nonzero(whole < 0.1).flatten()
+    assert len(close) >= 3 and core.min() > 0.2
+    va, vb = va[close], vb[close]
+    faces = bodies["faces"]
+    bare = CollisionTerm(faces, guard_weight=0.0)(va, vb).loss
+    assert torch.allclose(CollisionTerm(faces, guard_vertices=torso)(va, vb).loss, bare)
+    assert (CollisionTerm(faces)(va, vb).loss - bare > 0.05).all()  # the whole-body guard fires
+    # coincident bodies: the torso guard pays in full and pushes them apart
+    t = torch.zeros(1, 3, requires_grad=True)
+    r = CollisionTerm(faces, guard_vertices=torso)(bodies["a"], bodies["a"] + t[:, None])
+    assert r.loss.item() == pytest.approx(1.0)
+    r.loss.sum().backward()
+    assert t.grad[0, 0] < -1.0  # descent moves b along +X
+    with pytest.raises(ValueError, match="guard_vertices"):
+        CollisionTerm(faces, guard_vertices=[])
+    with pytest.raises(ValueError, match="out of range"):
+        CollisionTerm(faces, guard_vertices=[10**6])(bodies["a"], bodies["a"])
+
+
 def test_thin_penetration_is_seen(ct, bodies):
     # back to back, shifted until the deepest point is ~3 mm inside (depth moves ~1:1 with the shift)
     dz = BACK_DZ

@@ -256,3 +256,15 @@ def sole_vertices(model, per_foot: int = 40) -> dict[str, np.ndarray]:
         out[side] = cand[np.argsort(rest[cand, 1])[:per_foot]]
     return out
 
+
+#: the bones whose vertices make the torso (root, pelvis, spine): see :func:`torso_vertices`
+TORSO_BONES = ("root", "pelvis", "spine")
+
+
+def torso_vertices(model) -> np.ndarray:
+    """``(n,)`` indices of anny's vertices skinned mostly to the root, pelvis and spine bones (~1,400
+    of 13,718). Their centroid is where the body is: unlike the whole body's, it does not move when
+    the arms wrap round a partner, and two people's cannot come within ~20 cm without their torsos
+    overlapping (the collision term's coincidence guard compares them)."""
+    bones = [i for i, n in enumerate(model.bone_names) if n.startswith(TORSO_BONES)]
+    return np.flatnonzero(np.isin(model.vertex_bone(), bones))
