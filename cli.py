@@ -732,15 +732,20 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool)
 @main.command()
 @_take_options
 @click.option("--no-collision", is_flag=True, help="Fit without the SDF collision term (to see what it removes).")
+@click.option("--relaxed-hands", is_flag=True,
+              help="Keep anny's relaxed fingers: do not let the collision term open the hands (thumb and fingers).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit, e.g. cuda.")
-def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, no_collision: bool, window: int, device: str):
+def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, no_collision: bool, relaxed_hands: bool,
+        window: int, device: str):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
     closed-form retarget of the segment orientations, refined over windows of frames by L-BFGS on
     orientation, tracker, smoothness, floor and foot-stance terms plus an SDF collision term between
-    the two bodies. Writes bodies.npz, shapes.json, frames.npz and report.html / report.png.
+    the two bodies. The suit measures no fingers: where a hand lies on the partner, the collision
+    term opens its thumb and fingers (between anny's relaxed hand and flat) before it moves any
+    bone. Writes bodies.npz, shapes.json, frames.npz and report.html / report.png.
     Runs `sync` and `fuse` first if needed.
 
     Example:  dualhuman fit WS --take T001
@@ -749,7 +754,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, 
     from dualhuman_builder.fit.stages import run_fit
     from dualhuman_builder.workspace import Workspace
 
-    cfg = FitConfig(collision=not no_collision, window=window, device=device)
+    cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, window=window, device=device)
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)

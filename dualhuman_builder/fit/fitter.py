@@ -19,7 +19,10 @@ quadratic); ``transl`` starts at the fused pelvis position. ``o (4,)`` per frame
 each hand's thumb and fingers (:mod:`dualhuman_builder.body.hands`; 0 anny's relaxed hand, 1 flat,
 kept within [-0.5, 1]). The suit measures no fingers, so only the collision term moves them: a palm
 resting on the partner opens flat instead of leaving the relaxed thumb and fingertips inside them
-(the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). The skeleton terms use the
+(the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). Each
+window's collision passes start with one over the openings alone, then the full rounds.
+
+The skeleton terms use the
 :class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
 few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
 penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
@@ -346,7 +349,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params])
 
             # the hands first: their openings have no data term, so they give way before any bone the
-            # suit and trackers hold (and cannot swing an arm through the partner's, as a full pass can)
+            # suit and trackers hold, and the full rounds start from hands that already fit
             hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
             for _round, what in enumerate(passes if len(hit) else []):

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dualhuman_builder.body.hands import hand_axes, open_hand
 from dualhuman_builder.sim.ik import LimbChain, axis_angle, map_frames, normalize, rot_y
 from dualhuman_builder.sim.skeleton import Skeleton
 
@@ -91,8 +92,6 @@ class Performer:
         regions = load_regions(model)
         self.hand = {s: _hand_geometry(sk, verts, regions.vertices_of(("left" if s == "L" else "right") + "_hand"), s)
                      for s in SIDES}  # fmt: skip
-        from dualhuman_builder.body.hands import open_hand
-
         self.flat_hand = {s: open_hand(sk.names, sk.parents, r, verts, model.vertex_bone(), s) for s in SIDES}
         self.ankle_height = {s: r[sk.index(f"foot.{s}"), 1] + self.floor_offset for s in SIDES}
         self.hip_half_width = abs(r[sk.index("upperleg01.L"), 0])
@@ -273,8 +272,6 @@ class _HandGeometry:
 
 
 def _hand_geometry(sk: Skeleton, verts: np.ndarray, hand_vertices: np.ndarray, side: str) -> _HandGeometry:
-    from dualhuman_builder.body.hands import hand_axes
-
     r = sk.rest
     wrist, knuckle = r[sk.index(f"wrist.{side}")], r[sk.index(f"finger3-1.{side}")]
     fingers0, normal0 = hand_axes(sk.names, r, side)
