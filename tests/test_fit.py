@@ -20,12 +20,17 @@ def model():
     return get_body_model()
 
 
+SHAPE = {"gender": 0.2, "height": 0.7, "weight": 0.3}
+
+
+def _rig_and_pose(model, seed: int):
+    """A BodyRig of :data:`SHAPE` and three random frames: segment rotations (3, 23, 3, 3), translations (3, 3)."""
+    torch.manual_seed(seed)
+    return BodyRig(model, SHAPE), roma.rotvec_to_rotmat(torch.randn(3, 23, 3) * 0.5), torch.randn(3, 3)
+
+
 def test_body_rig_is_anny_exactly(model):
-    shape = {"gender": 0.2, "height": 0.7, "weight": 0.3}
-    rig = BodyRig(model, shape)
-    torch.manual_seed(0)
-    A = roma.rotvec_to_rotmat(torch.randn(3, 23, 3) * 0.5)
-    transl = torch.randn(3, 3)
+    rig, A, transl = _rig_and_pose(model, 0)
     mine = rig.pose(A, transl)
     ref = model.forward(rig.local_pose(A), rig.shape, transl)
     assert (mine.heads - ref.bone_heads).abs().max() < 1e-5
@@ -43,11 +48,7 @@ def test_hand_opening_is_anny_and_the_scenes_flat_hand(model):
     from dualhuman_builder.body.hands import OPENINGS
     from dualhuman_builder.sim.performer import Performer
 
-    shape = {"gender": 0.2, "height": 0.7, "weight": 0.3}
-    rig = BodyRig(model, shape)
-    torch.manual_seed(2)
-    A = roma.rotvec_to_rotmat(torch.randn(3, 23, 3) * 0.5)
-    transl = torch.randn(3, 3)
+    rig, A, transl = _rig_and_pose(model, 2)
     opening = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0], [0.3, -0.2, 0.8, 0.5]], requires_grad=True)
     mine = rig.pose(A, transl, opening=opening)
     ref = model.forward(rig.local_pose(A, opening), rig.shape, transl)
@@ -67,7 +68,7 @@ def test_hand_opening_is_anny_and_the_scenes_flat_hand(model):
     mine.vertices[2, vb == thumb_l[-1]].sum().backward()
     assert opening.grad[2, OPENINGS.index("thumb.L")] != 0 and opening.grad[2, OPENINGS.index("fingers.R")] == 0
     # opening 1 is the pose the scenes give a palm resting on the partner
-    perf = Performer(model, shape)
+    perf = Performer(model, SHAPE)
     local = torch.eye(3, dtype=torch.float64).repeat(1, len(names), 1, 1)
     for side in ("L", "R"):
         for bone, rot in perf.flat_hand[side].items():
