@@ -352,11 +352,12 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             # suit and trackers hold, and the full rounds start from hands that already fit
             hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
-            for _round, what in enumerate(passes if len(hit) else []):
+            for i_pass, what in enumerate(passes if len(hit) else []):
+                n_round = i_pass + (0 if hands else 1)  # the full rounds count from 1 (the hands' pass: 0)
                 hit_t = torch.as_tensor(hit, device=dev)
                 free = hands if what == "hands" else opt_params
                 copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
-                label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {_round + 1 - len(hands) // 2}")
+                label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
 
                 def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
                     if not _finite(params):
@@ -392,7 +393,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 with torch.no_grad():
                     vs = [p.vertices for p in pose_all(slice(None))]
                     left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
-                rounds_used = max(rounds_used, _round + 1)
+                if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
+                    rounds_used = max(rounds_used, n_round)
                 if left.max() > best[0]:
                     # deeper than the best round so far (the data pull the bodies into each other harder
                     # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
