@@ -425,7 +425,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             pose = a.rig.local_pose(rot, openings[k]).cpu().numpy()
             ang = np.degrees(deltas[k].norm(dim=-1).mean(-1).cpu().numpy())
             frames[f"orientation change (deg)/{a.name}"] = np.where(a.valid.cpu().numpy(), ang, np.nan)
-            frames[f"hand opening (0 relaxed, 1 flat)/{a.name}"] = openings[k].abs().max(-1).values.cpu().numpy()
+            o = openings[k]  # per frame the opening farthest from relaxed, with its sign (< 0: curled)
+            frames[f"hand opening (0 relaxed, 1 flat)/{a.name}"] = o.gather(1, o.abs().argmax(1, keepdim=True))[:, 0].cpu().numpy()
             if len(a.trk_seg):
                 posed = a.rig.pose(rot, transl, False)
                 seg_frame = rot[:, a.trk_seg] @ a.rig.seg_frame[a.trk_seg]
