@@ -26,9 +26,11 @@ from dualhuman_builder.body.mapping import MVN_SEGMENTS
 
 
 def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: float = 30.0,
-                          speed: float = 4.0, duration: float | None = None, model=None) -> tuple[Path, object]:  # fmt: skip
-    """Generate a ``scene_type`` scene (seed, fps), record its studio through loopback transports.
-    Returns ``(take_path, scene)``."""
+                          speed: float = 1.0, duration: float | None = None, model=None) -> tuple[Path, object]:  # fmt: skip
+    """Generate a ``scene_type`` scene (seed, fps), record its studio through loopback transports at
+    ``speed`` times real time. Returns ``(take_path, scene)``. Keep ``speed`` at 1 when the sync is
+    scored: a 2-core machine records losslessly up to ~2x (``benchmarks/bench_capture.py``), and a
+    hug recorded at 4x synced 121 ms off (0.25 ms at 1x)."""
     from dualhuman_builder.capture.session import capture_take, plan_capture
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
