@@ -306,15 +306,16 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     ctxs.append(None)
         params = []
         for k in range(len(acts)):
-            params += [t[sl].clone().requires_grad_(True) for t in (deltas[k], dtransl[k], openings[k])]
-        if not cfg.hand_opening:
-            for k in range(len(acts)):
-                params[P * k + 2].requires_grad_(False)
-        opt_params = [p for p in params if p.requires_grad]
+            params += [deltas[k][sl].clone().requires_grad_(True), dtransl[k][sl].clone().requires_grad_(True),
+                       openings[k][sl].clone().requires_grad_(cfg.hand_opening)]
+        # the skeleton pass moves the bones only (no term there reads the fingers); the collision passes
+        # move the hands' openings too, when allowed
+        bones = [p for k in range(len(acts)) for p in params[P * k : P * k + 2]]
+        hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
 
-        def pose_all(idx, vertices=True):
-            """Both actors' posed bodies at window rows ``idx`` (a slice or index tensor)."""
-            return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), vertices, params[P * k + 2][idx])[1]
+        def pose_all(idx):
+            """Both actors' posed bodies, with vertices, at window rows ``idx`` (a slice or index tensor)."""
+            return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), True, params[P * k + 2][idx])[1]
                     for k, a in enumerate(acts)]  # fmt: skip
 
         def skeleton_energy():
@@ -326,7 +327,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 outs.append((posed, rot))
             return total, outs
 
-        opt = torch.optim.LBFGS(opt_params, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
 
         def closure():
             opt.zero_grad()
@@ -350,12 +351,11 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
 
             # the hands first: their openings have no data term, so they give way before any bone the
             # suit and trackers hold, and the full rounds start from hands that already fit
-            hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
             for i_pass, what in enumerate(passes if len(hit) else []):
                 n_round = i_pass + (0 if hands else 1)  # the full rounds count from 1 (the hands' pass: 0)
                 hit_t = torch.as_tensor(hit, device=dev)
-                free = hands if what == "hands" else opt_params
+                free = hands if what == "hands" else bones + hands
                 copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
                 label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
 
