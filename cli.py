@@ -769,7 +769,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, 
 @click.option("--band", type=click.FloatRange(min=0.001, max=1.0), default=0.05, show_default=True,
               help="Distances (m) are computed and stored within this band of the other body; NaN beyond.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Processes to spread the frames over (1: in this one). Default: one per CPU, up to 8, when each "
+              help="Processes to spread the frames over (1: in this one). Default: one per two CPUs, up to 8, when each "
                    "gets at least 48 frames. The result does not depend on it.")
 @click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")
 def contacts(workspace: Path, take: str, threshold: float, band: float, workers: int | None, force: bool):

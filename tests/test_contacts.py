@@ -72,7 +72,12 @@ def _check_exact(topo, va, vb, frames):
                 continue
             d, f = frame
             compared += int(near.sum())
-            np.testing.assert_allclose(d[i][near], S[near], rtol=0, atol=1e-9)
+            # possible contacts (and everything inside) are libigl's own answers on the sub-mesh;
+            # the rest are computed on warp's closest face (float32 may pick a face tied to 1e-7 m)
+            libigl = near & (S < THRESHOLD)
+            np.testing.assert_allclose(d[i][libigl], S[libigl], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(d[i][near], S[near], rtol=0, atol=1e-7)
+            np.testing.assert_array_equal(np.sign(d[i][near]), np.sign(S[near]))
             assert np.isnan(d[i][S > BAND]).all()
             assert np.isneginf(d[i][S < -BAND]).all()
             deep += int(np.sum(S < -BAND))
@@ -156,7 +161,8 @@ def test_worker_processes_give_the_same_result(topo, hug, tmp_path, monkeypatch)
 
     assert auto_workers(MIN_FRAMES_PER_WORKER * 2 - 1, cpus=8) == 1  # short: stays in this process
     assert auto_workers(MIN_FRAMES_PER_WORKER * 2, cpus=8) == 2
-    assert auto_workers(100_000, cpus=2) == 2 and auto_workers(100_000, cpus=64) == 8
+    assert auto_workers(100_000, cpus=4) == 2 and auto_workers(100_000, cpus=64) == 8
+    assert auto_workers(100_000, cpus=2) == 1  # one process already uses both CPUs
 
 
 def test_a_failing_worker_is_reported(topo, hug, tmp_path, monkeypatch):

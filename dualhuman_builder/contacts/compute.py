@@ -5,23 +5,36 @@ pseudonormal signed distance (metres, negative inside) within a band ``band_m``;
 contact when its distance is below ``threshold_m`` (penetrations included). Frames are in the
 world frame of :mod:`dualhuman_builder.conventions`; vertices ``(T, V, 3)`` metres.
 
-How a frame is computed (exact: within the band, equal to one ``igl.signed_distance`` call of
-every vertex against the whole closed mesh, and labels equal to that call's without a band, which
-``tests/test_contacts.py`` checks to 1e-9 m):
+How a frame is computed (labels equal to one ``igl.signed_distance`` call of every vertex
+against the whole closed mesh, and distances within the band equal to its answers, which
+``tests/test_contacts.py`` checks: to 1e-9 m below the threshold, to 1e-7 m above it):
 
 1. **Broad phase.** A frame whose whole-body boxes are farther apart than the band is skipped
-   with no query at all; otherwise only vertices inside the other body's box grown by the band go on.
+   with no query at all; otherwise only vertices inside the other body's box grown by the band go
+   on, and in the kernel only those within the band of one of the other body's region boxes.
 2. **Narrow phase** (:mod:`dualhuman_builder.contacts.narrow`). A warp BVH of each body, built once
-   at the rest pose and refit per frame, picks in one float32 pass the vertices within the band
-   (plus a 10 um slack) and every face that may lie within a picked vertex's distance (plus the
-   slack) of it. libigl then computes those vertices' distances against that sub-mesh only. It
-   holds the closest face of every vertex within the band and every face around its closest vertex
-   or edge (they all contain the closest point), so libigl finds the same closest point with the
-   same pseudonormal sign as on the whole mesh. ``igl`` rebuilds its AABB tree and normals on
-   every call (about 1.5 us per face) and spends about 5 us per point within the band. On a hug's
-   contact frames (2-core CPU, ``benchmarks/bench_contacts.py``): ~140 ms per frame pair with the
-   former box-patch broad phase, which left ~13,500 faces per direction; ~85 ms with this one, of
-   which ~30 ms libigl (~2,600 vertices and ~2,300 faces per direction) and ~40 ms warp.
+   at the rest pose and refit per frame, finds in float32 each remaining vertex's closest face and
+   distance, keeping those within the band (plus a 10 um slack); the two directions run in two
+   threads (warp's kernels release the GIL). Then per vertex:
+
+   * **possible contacts** (float32 distance below ``threshold`` plus the slack) go to libigl:
+     the narrow phase picks every face that may lie within the vertex's distance (plus the slack),
+     and ``igl.signed_distance`` answers these vertices against that sub-mesh only. It holds the
+     closest face and every face around the closest vertex or edge (they all contain the closest
+     point), so libigl finds the same closest point with the same pseudonormal sign as on the
+     whole mesh;
+   * **the others** get the same pseudonormal signed distance in float64 on the face the BVH
+     found (:mod:`dualhuman_builder.contacts.pseudonormal`: closest point, and the sign from the
+     face, edge or vertex pseudonormal as libigl builds them); any that comes out inside (a
+     deep penetration) goes to libigl too. Where two faces tie to float32 precision the BVH may
+     name either: the distance then differs from libigl's by less than 1e-7 m (4 of 3,935 vertices
+     on one frame of the test's hug, by 1.4e-8 m at most), far below the float16 it is stored in.
+
+   ``igl`` rebuilds its AABB tree and normals on every call (about 1.5 us per face) and spends
+   about 5 us per point; the BVH's face walk for a vertex 4 cm away costs about as much, which is
+   why only possible contacts take that path. On a hug's contact frames (2-core CPU,
+   ``benchmarks/bench_contacts.py``): ~85 ms per frame pair when libigl answered every vertex in
+   the band (~2,600 per direction); ~30 ms now, ~480 of them per direction going to libigl.
 3. **Deep penetration.** ``igl`` returns NaN for points farther than the band on either side, so
    a vertex more than ``band_m`` inside the other body would come back NaN. Such vertices are
    found by a flood fill over the query body's edges: from a vertex inside within the band, across
@@ -31,9 +44,10 @@ every vertex against the whole closed mesh, and labels equal to that call's with
    (anny has a few edges longer than 5 cm, on the thighs and shins; a deep vertex reachable
    only across them stays NaN, i.e. not in contact.)
 
-Frames run one after the other in the calling thread, or, for long sequences, in worker processes
+Frames run one after the other in the calling thread (with one helper thread for the narrow
+phase), or, for long sequences on machines with more than two CPUs, in worker processes
 (:mod:`~dualhuman_builder.contacts.workers`): ``igl.signed_distance`` holds the GIL for each whole
-call, so threads cannot share its work.
+call, so threads cannot share the rest of the work.
 
 Region events follow CHI3D's contact signatures: a region pair (region ``r`` of actor 0, region
 ``s`` of actor 1) is in contact on a frame when a contact vertex of actor 0 in ``r`` has its
@@ -57,11 +71,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from dualhuman_builder.contacts.narrow import NearSelector
+from dualhuman_builder.contacts.pseudonormal import MeshAdjacency, signed_distance_to_faces
 
 DEFAULT_THRESHOLD_M = 0.02
 DEFAULT_BAND_M = 0.05
 DEFAULT_MERGE_GAP = 1
 CONTACT_RESULT_VERSION = 1
+COUNT_KEYS = ("queried_vertices", "queried_faces", "pseudonormal_vertices", "deep_vertices")
 
 
 # ============================================================================ mesh topology
@@ -73,7 +89,8 @@ class ContactTopology:
     V; ``vertex_region (V,)`` region index per vertex; ``region_names (R,)``; ``reference_vertices
     (V, 3)`` metres, any pose (the rest pose for anny): the warp BVHs of the narrow phase are built
     there and refit per frame. Derived: ``face_region (F,)``, the majority region of each face's
-    vertices (the first vertex's on a three-way tie), and the unique edges (for the flood fill).
+    vertices (the first vertex's on a three-way tie), the unique edges (for the flood fill) and
+    the faces' :class:`~dualhuman_builder.contacts.pseudonormal.MeshAdjacency`.
     """
 
     faces: np.ndarray
@@ -83,6 +100,7 @@ class ContactTopology:
     reference_vertices: np.ndarray = field(repr=False)
     face_region: np.ndarray = field(init=False, repr=False)
     edges: np.ndarray = field(init=False, repr=False)  # (E, 2) int64, unique, sorted per row
+    adjacency: MeshAdjacency = field(init=False, repr=False)
 
     def __post_init__(self):
         faces = np.asarray(self.faces)
@@ -110,7 +128,7 @@ class ContactTopology:
         e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         for k, v in (("faces", faces), ("num_vertices", V), ("vertex_region", region), ("region_names", names),
                      ("reference_vertices", ref), ("face_region", np.where((b == c) & (a != b), b, a)),
-                     ("edges", np.unique(np.sort(e, axis=1), axis=0))):  # fmt: skip
+                     ("edges", np.unique(np.sort(e, axis=1), axis=0)), ("adjacency", MeshAdjacency.of(faces, V))):  # fmt: skip
             object.__setattr__(self, k, v)
 
     @classmethod
@@ -140,7 +158,7 @@ def _selector(topo: ContactTopology) -> NearSelector:
         cache = _LOCAL.selectors = weakref.WeakKeyDictionary()
     sel = cache.get(topo)
     if sel is None:
-        sel = cache[topo] = NearSelector(topo.faces, topo.reference_vertices)
+        sel = cache[topo] = NearSelector(topo.faces, topo.reference_vertices, face_groups=topo.face_region)
     return sel
 
 
@@ -234,28 +252,34 @@ class ContactResult:
 
 
 # ============================================================================ one frame
-def _select(topo: ContactTopology, A: np.ndarray, B: np.ndarray, band: float, selector: NearSelector):
-    """The narrow phase of one frame (warp; no libigl): None when the bodies' whole boxes are
-    farther apart than ``band``, else per direction (A against B, B against A) the vertex indices
-    libigl must answer and the other body's faces it needs, ``((keep_a, faces_b), (keep_b, faces_a))``."""
-    lo_a, hi_a, lo_b, hi_b = A.min(0), A.max(0), B.min(0), B.max(0)
-    if np.any(lo_a > hi_b + band) or np.any(lo_b > hi_a + band):
-        return None  # whole bodies (all vertices) farther apart than the band
-    return selector.select(1, A, B, band), selector.select(0, B, A, band)
-
-
-def _query(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, keep: np.ndarray, fidx: np.ndarray, band: float,
-           counts: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Signed distances ``(V,)`` of the vertices ``P[keep]`` to the faces ``fidx`` of ``Q``
-    (libigl; NaN farther than ``band`` and elsewhere) and the closest face ``(V,)`` (index into
-    ``topo.faces``, -1 where the distance is NaN)."""
+def _direction(topo: ContactTopology, selector: NearSelector, target: int, P: np.ndarray, Q: np.ndarray, near,
+               band: float, threshold: float, counts: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Signed distances ``(V,)`` of the vertices ``P`` to the surface ``Q`` (BVH ``target`` of
+    ``selector``; NaN farther than ``band``) and each one's closest face ``(V,)`` (index into
+    ``topo.faces``, -1 where the distance is NaN), from ``near = (idx, face, dist)`` of
+    :meth:`NearSelector.closest`: vertices whose float32 distance exceeds ``threshold`` (plus the
+    slack) and that lie outside get their distance from :mod:`.pseudonormal` on that face; the
+    rest (possible contacts) from libigl against the sub-mesh :meth:`NearSelector.faces_for` picks."""
     import igl
 
     V = topo.num_vertices
     d = np.full(V, np.nan)
     face = np.full(V, -1, dtype=np.int64)
-    if not len(keep):
+    idx, near_face, dist = near
+    if not len(idx):
         return d, face
+    far = np.flatnonzero(dist > threshold + selector.slack)
+    sd = signed_distance_to_faces(P[idx[far]], Q, topo.faces, topo.adjacency, near_face[far])
+    outside = far[sd >= 0]  # NaN (no pseudonormal) compares False: libigl answers it
+    sd = sd[sd >= 0]
+    within = sd <= band  # libigl's banded answer is NaN beyond the band
+    d[idx[outside[within]]] = sd[within]
+    face[idx[outside[within]]] = near_face[outside[within]]
+    counts["pseudonormal_vertices"] += len(outside)
+    exact = np.setdiff1d(np.arange(len(idx)), outside, assume_unique=True)
+    if not len(exact):
+        return d, face
+    keep, fidx = idx[exact], selector.faces_for(target, exact)
     sub = topo.faces[fidx]
     used = np.zeros(V, dtype=bool)
     used[sub.ravel()] = True
@@ -272,14 +296,11 @@ def _query(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, keep: np.ndarray
     return d, face
 
 
-def _finish(topo: ContactTopology, A: np.ndarray, B: np.ndarray, selection, band: float, counts: dict):
-    """libigl and the flood fill on one frame's :func:`_select` result: ``(distances (2, V),
-    faces (2, V))`` as :func:`contact_frame` returns them."""
-    (keep_a, faces_b), (keep_b, faces_a) = selection
-    d_a, f_a = _query(topo, A, B, keep_a, faces_b, band, counts)
-    d_b, f_b = _query(topo, B, A, keep_b, faces_a, band, counts)
-    counts["deep_vertices"] += _flood_deep(topo, A, d_a, band) + _flood_deep(topo, B, d_b, band)
-    return np.stack([d_a, d_b]), np.stack([f_a, f_b])
+def _box(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` of points ``X (N, 3)`` (numpy reduces ``(N, 3)`` along axis 0 ~20x slower than
+    its ``(3, N)`` copy along axis 1)."""
+    T = np.ascontiguousarray(X.T)
+    return T.min(axis=1), T.max(axis=1)
 
 
 def _as_frame(topo: ContactTopology, verts_a, verts_b) -> tuple[np.ndarray, np.ndarray]:
@@ -369,24 +390,33 @@ def _events(per_frame: list[dict], names, merge_gap: int, fps: float | None) -> 
 
 
 def contact_frame(topology: ContactTopology, verts_a: np.ndarray, verts_b: np.ndarray, band_m: float = DEFAULT_BAND_M,
-                  counts: dict | None = None) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+                  counts: dict | None = None, threshold_m: float = DEFAULT_THRESHOLD_M) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
     """Both directions of one frame: ``(distances (2, V) float64, faces (2, V) int64)``, row 0 the
     vertices of A against B's surface, row 1 B against A's. Distances in metres, negative inside,
     NaN farther than ``band_m``, ``-inf`` inside deeper than ``band_m``; faces: the closest face
     (index into ``topology.faces``), -1 where the distance is not finite. None when the bodies'
-    boxes are farther apart than ``band_m`` (no query made). ``counts`` (optional) accumulates
-    ``queried_vertices``, ``queried_faces`` (those libigl was given) and ``deep_vertices``."""
+    boxes are farther apart than ``band_m`` (no query made). Vertices that may lie below
+    ``threshold_m`` or inside are answered by libigl (see the module docstring). ``counts``
+    (optional) accumulates ``queried_vertices``, ``queried_faces`` (those libigl was given),
+    ``pseudonormal_vertices`` and ``deep_vertices``."""
     A, B = _as_frame(topology, verts_a, verts_b)
     counts = counts if counts is not None else {}
-    for k in ("queried_vertices", "queried_faces", "deep_vertices"):
+    for k in COUNT_KEYS:
         counts.setdefault(k, 0)
-    selection = _select(topology, A, B, band_m, _selector(topology))
-    return None if selection is None else _finish(topology, A, B, selection, band_m, counts)
+    (lo_a, hi_a), (lo_b, hi_b) = _box(A), _box(B)
+    if np.any(lo_a > hi_b + band_m) or np.any(lo_b > hi_a + band_m):
+        return None  # whole bodies (all vertices) farther apart than the band
+    selector = _selector(topology)
+    near_a, near_b = selector.closest_pair(A, B, band_m)
+    d_a, f_a = _direction(topology, selector, 1, A, B, near_a, band_m, threshold_m, counts)
+    d_b, f_b = _direction(topology, selector, 0, B, A, near_b, band_m, threshold_m, counts)
+    counts["deep_vertices"] += _flood_deep(topology, A, d_a, band_m) + _flood_deep(topology, B, d_b, band_m)
+    return np.stack([d_a, d_b]), np.stack([f_a, f_b])
 
 
 def _frame_result(topo: ContactTopology, frame, threshold: float):
     """One frame as the sequence loop stores it: ``(labels (2, V), distances (2, V) float16,
-    region pairs)`` from :func:`_finish`'s ``frame``."""
+    region pairs)`` from :func:`contact_frame`'s ``frame``."""
     (d_a, d_b), (f_a, f_b) = frame
     labels = np.stack([d_a < threshold, d_b < threshold])  # NaN compares False, -inf True
     return labels, np.stack([d_a, d_b]).astype(np.float16), _frame_pairs(topo, d_a, f_a, d_b, f_b, threshold)
@@ -398,7 +428,7 @@ def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: 
     ``result`` is :func:`_frame_result`'s tuple, or None when the bodies are farther apart than
     ``band``. ``counts`` accumulates the query counts; ``on_done()`` after each frame."""
     for t in frames:
-        frame = contact_frame(topo, verts_a[t], verts_b[t], band, counts)
+        frame = contact_frame(topo, verts_a[t], verts_b[t], band, counts, threshold)
         result = None if frame is None else _frame_result(topo, frame, threshold)
         if on_done is not None:
             on_done()
@@ -449,7 +479,7 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     ``stats["skipped_nan_frames"]``, with ``valid`` False) or ``"raise"`` (ValueError naming the
     first such frame, before any work). ``progress(str)`` is called about every 10 % of frames.
     ``workers``: processes to spread the frames over (:mod:`~dualhuman_builder.contacts.workers`;
-    1: all in this process; default: one per CPU, up to 8, when each gets at least 48 frames).
+    1: all in this process; default: one per two CPUs, up to 8, when each gets at least 48 frames).
     The result does not depend on it.
     """
     topo = topology
@@ -480,7 +510,7 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
     t0 = time.perf_counter()
     labels = np.zeros((2, T, V), dtype=bool)
     distances = np.full((2, T, V), np.nan, dtype=np.float16)
-    counts = {"queried_vertices": 0, "queried_faces": 0, "deep_vertices": 0}
+    counts = dict.fromkeys(COUNT_KEYS, 0)
     per_frame: list[dict] = [{} for _ in range(T)]
     far_frames = done = 0
     frames = np.flatnonzero(finite)
@@ -517,6 +547,7 @@ def contacts_from_vertices(verts_a: np.ndarray, verts_b: np.ndarray, topology: C
         "first_nan_frames": np.flatnonzero(~finite)[:10].tolist(),
         "queried_vertices": counts["queried_vertices"],
         "queried_faces": counts["queried_faces"],
+        "pseudonormal_vertices": counts["pseudonormal_vertices"],
         "deep_vertices": counts["deep_vertices"],
         "seconds": round(seconds, 4),
         "frame_pairs_per_s": round(computed / seconds, 2) if seconds > 0 else None,
