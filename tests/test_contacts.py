@@ -83,6 +83,8 @@ def _check_exact(topo, va, vb, frames):
             deep += int(np.sum(S < -BAND))
             assert (f[i][np.isfinite(d[i])] >= 0).all() and (f[i][~np.isfinite(d[i])] == -1).all()
             np.testing.assert_array_equal(res.labels[i, t], S < THRESHOLD)
+            # the sequence loop (a pipeline over two selectors) stores what contact_frame returns
+            np.testing.assert_array_equal(res.distances[i, t], d[i].astype(np.float16))
     assert compared > 200
     return res, deep
 
