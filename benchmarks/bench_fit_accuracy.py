@@ -3,12 +3,15 @@ transports -> MCAP -> replay -> sync -> fuse -> fit, against the scene's ground 
 
     .venv/bin/python benchmarks/bench_fit_accuracy.py                        # six types x seeds 1, 2 at 15 fps
     .venv/bin/python benchmarks/bench_fit_accuracy.py --types hug --seeds 1 2 3 --fps 30
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/       # record once, score again later
 
 Per take it fits twice: with trackers and the collision term (the product; the fitter also measures
 the penetration its windows leave before the collision passes: the "off" columns), and without
 trackers or collision term (what fusion buys), and prints one row per take plus the mean and worst over takes, against the issue's goals. Takes are
-recorded in real time (``--speed``), so the figures include real transport timing. Writes
-``benchmarks/results/fit_accuracy.json``.
+recorded in real time (``--speed``), so the figures include real transport timing; two recordings
+of one scene differ through that timing, so ``--keep DIR`` keeps the recordings (``DIR/<type>-<seed>/``)
+and a later run with the same ``DIR`` scores the same ones again (to compare code, not recordings).
+Writes ``benchmarks/results/fit_accuracy.json``.
 """
 
 from __future__ import annotations
@@ -36,7 +39,16 @@ def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.pipeline import process_take
 
-    take, scene = record_simulated_take(scene_type, seed, tmp / f"{scene_type}-{seed}", fps=fps, speed=speed, model=model)
+    from dualhuman_builder.sim.scenes import Scene
+
+    folder = tmp / f"{scene_type}-{seed}"
+    take, scene_file = folder / f"{scene_type}-{seed}.mcap", folder / f"{scene_type}-{seed}.scene.npz"
+    if take.is_file() and scene_file.is_file():  # kept from an earlier run (--keep)
+        scene = Scene.load(scene_file)
+        if abs(scene.sequence.fps - fps) > 1e-9:
+            raise SystemExit(f"{take} was recorded at {scene.sequence.fps:g} fps, not {fps:g}: use another --keep folder")
+    else:
+        take, scene = record_simulated_take(scene_type, seed, folder, fps=fps, speed=speed, model=model)
     t0 = time.perf_counter()
     tf = process_take(take, fps=fps, model=model)
     wall = time.perf_counter() - t0
@@ -65,6 +77,8 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=15.0, help="scene and fit frame rate")
     ap.add_argument("--speed", type=float, default=1.0, help="recording speed (multiple of real time)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fit_accuracy.json")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="keep the recordings in this folder, and score those already there instead of recording again")
     args = ap.parse_args()
 
     from dualhuman_builder.body.model import get_body_model
@@ -73,9 +87,10 @@ def main() -> None:
     rows = []
     print(f"{'take':<16}" + "".join(f"{c[:14]:>15}" for c in COLUMNS), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) if args.keep is None else args.keep
         for t in args.types:
             for s in args.seeds:
-                r = one_take(t, s, args.fps, args.speed, Path(tmp), model)
+                r = one_take(t, s, args.fps, args.speed, folder, model)
                 rows.append(r)
                 print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in COLUMNS), flush=True)
     summary = {}

@@ -126,9 +126,10 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev["mount_rotation_error_deg"] < 2.5
     assert ev["clock_offset_error_ms"] < 5.0
     assert ev["foot_slide_mm"] < 5.0
-    # the collision passes take the skeleton pass's ~20 mm hand overlap down to the tolerance (2 mm; ~1 mm measured),
-    # within the issue's 5 mm whatever the recording's timing
-    assert ev["max_penetration_before_mm"] > 10 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
+    # the collision passes take the skeleton pass's hand overlap (10-20 mm; 9.8 in one recording since the
+    # heading search weighs the orientations properly) down to the tolerance (2 mm; ~1 mm measured), within
+    # the issue's 5 mm whatever the recording's timing
+    assert ev["max_penetration_before_mm"] > 7 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
     assert ev["penetrating_share"] < 0.5 * ev["penetrating_share_before"]
     # the suit gives no fingers: the collision passes opened the clasped hands, within the openings' range
     opening = np.stack([tf.fit.frames[f"hand opening (0 relaxed, 1 flat)/{a}"] for a in ("sim-a", "sim-b")])

@@ -554,8 +554,8 @@ class _HeadingProblem:
 
     def nll(self, psi) -> float:
         """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
-        (per-tracker robust scale, fixed at the first call), position residuals, drift random walk,
-        mount-site prior."""
+        (per-tracker robust scale, fixed at the first call, which :meth:`search` makes at the
+        heading the orientations chose), position residuals, drift random walk, mount-site prior."""
         G, M, m, d_knots, _, _, en = self.solve(psi)
         ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)
         if self.sig_rot is None:
@@ -571,6 +571,7 @@ class _HeadingProblem:
         """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`."""
         step, fine = math.radians(_SCAN_STEP_DEG), math.radians(_SCAN_FINE_DEG)
         grid = np.arange(-_SCAN_RANGE_DEG, _SCAN_RANGE_DEG + 1e-9, _SCAN_STEP_DEG)
+        self.nll(psi)  # the orientation residuals' scale comes from the heading the orientations chose
         costs = np.array([self.nll(psi + math.radians(g)) for g in grid])
         best = math.radians(float(grid[int(np.argmin(costs))]))
         x = best + np.array([-step, -fine, 0.0, fine, step])
