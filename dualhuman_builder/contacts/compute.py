@@ -271,9 +271,9 @@ def _direction(topo: ContactTopology, selector: NearSelector, target: int, P: np
     idx, near_face, dist = near
     if not len(idx):
         return d, face
-    far = np.flatnonzero(dist > threshold + selector.slack)
-    sd = signed_distance_to_faces(P[idx[far]], Q, topo.faces, topo.adjacency, near_face[far])
-    outside = far[sd >= 0]  # NaN (no pseudonormal) compares False: libigl answers it
+    beyond = np.flatnonzero(dist > threshold + selector.slack)  # no contact unless inside
+    sd = signed_distance_to_faces(P[idx[beyond]], Q, topo.faces, topo.adjacency, near_face[beyond])
+    outside = beyond[sd >= 0]  # NaN (no pseudonormal) compares False: libigl answers it
     sd = sd[sd >= 0]
     within = sd <= band  # libigl's banded answer is NaN beyond the band
     d[idx[outside[within]]] = sd[within]
@@ -445,9 +445,9 @@ def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: 
     A pipeline of two stages: a helper thread runs the BVH queries of frame ``t + 1``
     (:func:`_prepare`, warp, outside the GIL) while this thread finishes frame ``t``
     (:func:`_complete`: numpy and libigl, which holds the GIL), each frame on one of two
-    selectors in turn. On a hug's contact frames (2 CPUs): 32-35 -> 39-42 frame pairs/s (a 0.5 ms
-    thread switch interval instead of Python's 5 ms added 1-4 more: not worth changing a
-    process-wide setting).
+    selectors in turn. On a hug's contact frames (2 CPUs), in a prototype of this loop: 32-35 ->
+    39-42 frame pairs/s (a 0.5 ms thread switch interval instead of Python's 5 ms added 1-4 more:
+    not worth changing a process-wide setting).
     """
     from concurrent.futures import ThreadPoolExecutor
 

@@ -25,8 +25,8 @@ are farther than the band from the other surface.
 
 Kernel launches release the GIL (warp calls them through ctypes), so :meth:`~NearSelector.closest_pair`
 runs the two directions of a frame in two threads (on a hug's contact frame 42 -> 24 ms on 2
-cores). libigl holds the GIL for each whole call, so overlapping it with the next frame's
-selection gained nothing (measured on a hug).
+cores), and the contact stage runs the next frame's :meth:`~NearSelector.closest_pair` while
+libigl and numpy finish the last frame (``contacts.compute._compute_frames``, on a second selector).
 """
 
 from __future__ import annotations

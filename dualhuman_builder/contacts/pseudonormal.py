@@ -126,7 +126,7 @@ def signed_distance_to_faces(points: np.ndarray, vertices: np.ndarray, faces: np
     ring = _ring_slots(adjacency, tri[vert, index[vert]])
     if face_normals is None:  # only the faces read below (a face's normal depends on its vertices alone)
         need = np.unique(np.concatenate([fi, other[other >= 0], adjacency.ring_face[ring[0]]]))
-        face_normals = np.empty((len(faces), 3))
+        face_normals = np.zeros((len(faces), 3))
         face_normals[need] = igl.per_face_normals(Q, faces[need])
     FN = face_normals
     n = FN[fi]

@@ -1,7 +1,7 @@
 """Contacts of many frames in worker processes.
 
 ``igl.signed_distance`` holds the GIL for the whole call, so threads cannot share its work (each
-process runs only the narrow phase's two directions in two threads). Long takes are therefore split across
+process already keeps about two CPUs busy: its narrow phase runs in helper threads outside the GIL). Long takes are therefore split across
 ``workers`` processes, each started as ``python -m dualhuman_builder.contacts.workers`` (a fresh
 interpreter: no fork of a process holding torch's and warp's threads, and no re-import of the
 caller's ``__main__``, so scripts without a ``__main__`` guard work). Worker ``k`` of ``W`` takes
@@ -37,9 +37,10 @@ MIN_FRAMES_PER_WORKER = 48
 
 def auto_workers(frames: int, cpus: int | None = None) -> int:
     """Processes for ``frames`` frames to compute: one per two CPUs (each process runs the narrow
-    phase's two directions in two threads; at most 8) as long as each gets at least
+    phase in helper threads; at most 8) as long as each gets at least
     :data:`MIN_FRAMES_PER_WORKER` frames; 1 means "in the calling process" (always on 2 CPUs,
-    where two processes measured slower than one: 51.6 against 53.7 frame pairs/s on a hug)."""
+    where two processes measured slower than one: 52.3 against 63.5 frame pairs/s on a hug x4,
+    ``benchmarks/bench_contacts.py``)."""
     cpus = cpus or os.cpu_count() or 1
     return max(1, min(cpus // 2, 8, frames // MIN_FRAMES_PER_WORKER))
 
