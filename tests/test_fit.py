@@ -249,3 +249,25 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     assert torch.equal(first_of_round[1], first_of_round[2])
     assert calls[2] < calls[0]  # round 2 reduced the overlap, and its answer is kept
     assert s["max_penetration_after_mm"] == pytest.approx(1000 * calls[2], rel=1e-3)
+
+
+def test_stuck_frames_restart_from_their_neighbours():
+    """A run of stuck frames inside the window is set to the straight line between the frames around
+    it (every parameter tensor), one at the window's edge to its one neighbour; frames outside the
+    runs are untouched; a window stuck everywhere has nothing to start from."""
+    from dualhuman_builder.fit.fitter import _restart_from_neighbours
+
+    W = 10
+    delta = torch.arange(W, dtype=torch.float32)[:, None, None].repeat(1, 23, 3) ** 2  # (W, 23, 3)
+    opening = torch.arange(W, dtype=torch.float32)[:, None].repeat(1, 4) * -1.0  # (W, 4)
+    params = [delta.clone(), opening.clone()]
+    stuck = np.zeros(W, bool)
+    stuck[[0, 1, 4, 5, 6]] = True
+    assert _restart_from_neighbours(params, stuck)
+    d = params[0][:, 0, 0]
+    # frames 4-6 between frame 3 (9) and frame 7 (49): 19, 29, 39; frames 0-1 copy frame 2 (4)
+    np.testing.assert_allclose(d.numpy(), [4, 4, 4, 9, 19, 29, 39, 49, 64, 81], rtol=1e-6)
+    np.testing.assert_allclose(params[1][:, 2].numpy(), [-2, -2, -2, -3, -4, -5, -6, -7, -8, -9], rtol=1e-6)
+    assert torch.equal(params[0][:, 5], params[0][:, 0])  # every element of a frame moves alike
+    frozen = [delta.clone()]
+    assert not _restart_from_neighbours(frozen, np.ones(W, bool)) and torch.equal(frozen[0], delta)
