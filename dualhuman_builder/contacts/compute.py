@@ -27,8 +27,9 @@ against the whole closed mesh, and distances within the band equal to its answer
      found (:mod:`dualhuman_builder.contacts.pseudonormal`: closest point, and the sign from the
      face, edge or vertex pseudonormal as libigl builds them); any that comes out inside (a
      deep penetration) goes to libigl too. Where two faces tie to float32 precision the BVH may
-     name either: the distance then differs from libigl's by less than 1e-7 m (4 of 3,935 vertices
-     on one frame of the test's hug, by 1.4e-8 m at most), far below the float16 it is stored in.
+     name either: the distance then differs from libigl's by less than 1e-7 m (the test's bound;
+     ``benchmarks/bench_contacts.py`` prints the largest difference), far below the float16 it is
+     stored in.
 
    ``igl`` rebuilds its AABB tree and normals on every call (about 1.5 us per face) and spends
    about 5 us per point; the BVH's face walk for a vertex 4 cm away costs about as much, which is
@@ -445,8 +446,8 @@ def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: 
     A pipeline of two stages: a helper thread runs the BVH queries of frame ``t + 1``
     (:func:`_prepare`, warp, outside the GIL) while this thread finishes frame ``t``
     (:func:`_complete`: numpy and libigl, which holds the GIL), each frame on one of two
-    selectors in turn. On a hug's contact frames (2 CPUs), in a prototype of this loop: 32-35 ->
-    39-42 frame pairs/s (a 0.5 ms thread switch interval instead of Python's 5 ms added 1-4 more:
+    selectors in turn. On a hug's contact frames (2 CPUs), in a prototype of this loop timed once
+    with a script outside the repo: 32-35 -> 39-42 frame pairs/s (a 0.5 ms thread switch interval instead of Python's 5 ms added 1-4 more:
     not worth changing a process-wide setting).
     """
     from concurrent.futures import ThreadPoolExecutor

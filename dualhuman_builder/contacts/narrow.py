@@ -10,8 +10,8 @@ refit to each frame: under 1 ms) and answers in two kernels:
 * :meth:`~NearSelector.faces_for` — for chosen near vertices, every face of the other body that
   may lie within ``d(p) + slack`` of ``p`` (a conservative test: the distance from ``p`` to the
   face's box and to its plane, both lower bounds of the distance to the face). This walk over a
-  box of half-size ``d(p)`` costs about 5 us for a vertex 4 cm away and is what the contact stage
-  saves by sending only possible contacts to libigl.
+  box of half-size ``d(p)`` costs about 5 us for a vertex 4 cm away (profiled once) and is what
+  the contact stage saves by sending only possible contacts to libigl.
 
 ``slack`` (default 1e-5 m) is about a hundred times the float32 error of these distances (1.5e-7 m
 at most on a hug's contact frame against libigl). Both bodies are moved by the surface's mean
@@ -25,7 +25,7 @@ are farther than the band from the other surface.
 
 Kernel launches release the GIL (warp calls them through ctypes), so :meth:`~NearSelector.closest_pair`
 runs the two directions of a frame in two threads (on a hug's contact frame 42 -> 24 ms on 2
-cores), and the contact stage runs the next frame's :meth:`~NearSelector.closest_pair` while
+cores, timed once with a script outside the repo), and the contact stage runs the next frame's :meth:`~NearSelector.closest_pair` while
 libigl and numpy finish the last frame (``contacts.compute._compute_frames``, on a second selector).
 """
 

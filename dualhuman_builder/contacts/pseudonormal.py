@@ -106,12 +106,12 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
 
 
 def signed_distance_to_faces(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, adjacency: MeshAdjacency,
-                             face_idx: np.ndarray, face_normals: np.ndarray | None = None):  # fmt: skip
+                             face_idx: np.ndarray) -> np.ndarray:  # fmt: skip
     """Signed distances ``(N,)`` (metres, negative inside) of ``points (N, 3)`` to the closed mesh
     ``vertices (V, 3)``, ``faces (F, 3)`` as ``igl.signed_distance`` with the pseudonormal sign
-    computes them, given that ``face_idx (N,)`` names each point's closest face. ``face_normals``
-    (``igl.per_face_normals`` of the mesh) is computed when not given. A point whose feature is an
-    edge without exactly two faces gets NaN (let libigl answer it)."""
+    computes them, given that ``face_idx (N,)`` names each point's closest face. Face normals come
+    from ``igl.per_face_normals``, for the faces read only. A point whose feature is an edge
+    without exactly two faces gets NaN (let libigl answer it)."""
     import igl
 
     P = np.asarray(points, dtype=np.float64)
@@ -124,11 +124,10 @@ def signed_distance_to_faces(points: np.ndarray, vertices: np.ndarray, faces: np
     edge, vert = np.flatnonzero(kind == EDGE), np.flatnonzero(kind == VERTEX)
     other = adjacency.across[fi[edge], index[edge]]
     ring = _ring_slots(adjacency, tri[vert, index[vert]])
-    if face_normals is None:  # only the faces read below (a face's normal depends on its vertices alone)
-        need = np.unique(np.concatenate([fi, other[other >= 0], adjacency.ring_face[ring[0]]]))
-        face_normals = np.zeros((len(faces), 3))
-        face_normals[need] = igl.per_face_normals(Q, faces[need])
-    FN = face_normals
+    # only the faces read below (a face's normal depends on its vertices alone)
+    need = np.unique(np.concatenate([fi, other[other >= 0], adjacency.ring_face[ring[0]]]))
+    FN = np.zeros((len(faces), 3))
+    FN[need] = igl.per_face_normals(Q, faces[need])
     n = FN[fi]
     n[edge] += FN[np.maximum(other, 0)]
     n[edge[other < 0]] = np.nan

@@ -353,17 +353,18 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
             hit = np.flatnonzero(pen["max_depth_m"] > 0)
             collided_frames += len(hit)
             weight = cfg.collision_weight
-            # the deepest frame's depth after the best round so far (before any: the skeleton pass's), and
-            # that round's corrections
-            best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params])
+            # the deepest frame's depth after the best round so far (before any: the skeleton pass's), that
+            # round's corrections and its per-frame depths (W,)
+            best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
 
             # the hands first: their openings have no data term, so they give way before any bone the
             # suit and trackers hold, and the full rounds start from hands that already fit
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
-            prev_left, restarted = pen["max_depth_m"], False
+            restarted = False
             for i_pass, what in enumerate(passes if len(hit) else []):
                 n_round = i_pass + (0 if hands else 1)  # the full rounds count from 1 (the hands' pass: 0)
                 hit_t = torch.as_tensor(hit, device=dev)
+                start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
                 free = hands if what == "hands" else bones + hands
                 copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
                 label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
@@ -411,21 +412,23 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     _restore(params, best[1])
                     worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                 else:
-                    best = (float(left.max()), [p.detach().clone() for p in params])
+                    best = (float(left.max()), [p.detach().clone() for p in params], left)
                     if left.max() <= cfg.collision_tolerance_m:
                         break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
                 if what == "all" and cfg.collision_restart and not restarted and n_round >= 2:
                     # frames a round could not move (interlocked hands: the two pushes oppose each other)
-                    # start again from their neighbours' answer, where the bodies meet less deeply
-                    deep = left > cfg.collision_tolerance_m
-                    stuck = deep & (left > 0.8 * prev_left)
+                    # start again from their neighbours' answer, where the bodies meet less deeply. The
+                    # window now holds the best answer (kept or restored), and the round started from the
+                    # best before it: compare those two
+                    now = best[2]
+                    deep = now > cfg.collision_tolerance_m
+                    stuck = deep & (now > 0.8 * start_left)
                     if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
                         run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
                         restarted = _restart_from_neighbours(params, deep & np.isin(run, run[stuck]))
                         if restarted:
                             say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
-                prev_left = left
                 if what == "all":
                     weight *= 4.0
         for k in range(len(acts)):  # overlapping frames take the later window's answer

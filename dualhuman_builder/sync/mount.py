@@ -537,7 +537,7 @@ class _HeadingProblem:
         self.w_pos = np.where(inl, w_pos, 0.0)
         self.rate, self.m0, self.m_prec, self.scale = rate, m0, m_prec, obs_per_sample
         self.inl_f = inl.astype(np.float64)
-        self.sig_rot = None
+        self.sig_rot: np.ndarray | None = None  # per tracker, rad: set by search()
 
     def solve(self, psi):
         """``(G, M, m, d_knots, cov_m, e, |e|)`` for heading ``psi (T,)``: ``G = Y R_seg``, mounts
@@ -552,15 +552,17 @@ class _HeadingProblem:
         e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
         return G, M, m, d_knots, cov_m, e, np.linalg.norm(e, axis=-1)
 
+    def _orientation_residuals(self, psi):
+        """``(solve(psi), angles (T, K) rad)``: the re-solved mounts and each sample's rotation residual."""
+        solved = self.solve(psi)
+        G, M = solved[0], solved[1]
+        return solved, _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)[0]
+
     def nll(self, psi) -> float:
         """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
-        (per-tracker robust scale, fixed at the first call, which :meth:`search` makes at the
-        heading the orientations chose), position residuals, drift random walk, mount-site prior."""
-        G, M, m, d_knots, _, _, en = self.solve(psi)
-        ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)
-        if self.sig_rot is None:
-            self.sig_rot = np.array([max(1.4826 * float(np.median(ang[self.inl[:, k], k])), 1e-4)
-                                     if self.inl[:, k].any() else 1.0 for k in range(ang.shape[1])])  # fmt: skip
+        (over each tracker's robust scale ``sig_rot``, set by :meth:`search`), position residuals,
+        drift random walk, mount-site prior."""
+        (G, M, m, d_knots, _, _, en), ang = self._orientation_residuals(psi)
         rot = float(np.sum(self.inl_f * (ang / self.sig_rot[None]) ** 2))
         pos = float(np.sum(self.w_pos * en**2))
         walk = float(np.sum(np.diff(d_knots, axis=0) ** 2)) / (self.rate**2 * self.dk.step)
@@ -568,10 +570,14 @@ class _HeadingProblem:
         return 0.5 * self.scale * (rot + pos + walk + prior)  # scale * m_prec = 1 / site_prior_m^2
 
     def search(self, psi) -> tuple[float, float]:
-        """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`."""
+        """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`. Each
+        tracker's orientation scale is measured once, at ``psi`` (the heading the orientations
+        chose): measured at an offset heading it would swell and mute the orientations."""
+        _, ang = self._orientation_residuals(psi)
+        self.sig_rot = np.array([max(1.4826 * float(np.median(ang[self.inl[:, k], k])), 1e-4)
+                                 if self.inl[:, k].any() else 1.0 for k in range(ang.shape[1])])  # fmt: skip
         step, fine = math.radians(_SCAN_STEP_DEG), math.radians(_SCAN_FINE_DEG)
         grid = np.arange(-_SCAN_RANGE_DEG, _SCAN_RANGE_DEG + 1e-9, _SCAN_STEP_DEG)
-        self.nll(psi)  # the orientation residuals' scale comes from the heading the orientations chose
         costs = np.array([self.nll(psi + math.radians(g)) for g in grid])
         best = math.radians(float(grid[int(np.argmin(costs))]))
         x = best + np.array([-step, -fine, 0.0, fine, step])
