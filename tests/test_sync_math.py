@@ -21,7 +21,7 @@ from dualhuman_builder.sync.lag import (
     estimate_lag,
     linear_speed,
 )
-from dualhuman_builder.sync.mount import MountCalibration, calibrate_mounts
+from dualhuman_builder.sync.mount import MountCalibration, SuitChain, calibrate_mounts
 
 TRACKER_CLOCK = DeviceClock(offset_s=0.25, drift_ppm=30.0, latency_s=0.004, jitter_s=0.001)
 #: host seconds per device second for TRACKER_CLOCK, as ppm
@@ -463,6 +463,81 @@ def test_a_turning_actors_heading_follows_its_orientations_over_a_skewed_constel
     cal = calibrate_mounts(t, seg_rot, seg_pos, trk_rot, trk_pos, valid, sites=truth["offsets"])
     err = math.degrees(float(np.mean(cal.heading_rad - truth["psi"])))
     assert abs(err) < 0.5, err
+
+
+def chain_scene(seed, duration=20.0, rate=30.0):
+    """Three suit segments in a chain, root -> arm -> hand, trackers on the root and the hand. The
+    arm's measured orientation is the true one turned by a constant ``eps`` (3, -4, 2 degrees), and
+    the suit places the hand at the end of the arm's bone (0, 0.3, 0.05) m turned by the measured
+    orientation (an inertial suit's forward kinematics): ~20 mm off where it really is."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration, 1.0 / rate)
+    T, S = t.shape[0], 3
+    f, ph, amp = rng.uniform(0.1, 0.6, (S, 3)), rng.uniform(0, 2 * np.pi, (S, 3)), rng.uniform(0.4, 1.0, (S, 3))
+    rv = amp * np.sin(2 * np.pi * f * t[:, None, None] + ph)
+    true = [R.from_rotvec(rv[:, s]) for s in range(S)]
+    eps = np.radians([3.0, -4.0, 2.0])
+    meas = [true[0], true[1] * R.from_rotvec(eps), true[2]]
+    bones = [None, np.array([0.1, 0.2, 0.0]), np.array([0.0, 0.3, 0.05])]
+    root = np.array([0.0, 1.0, 0.0]) + 0.3 * np.sin(2 * np.pi * 0.1 * t)[:, None] * [1.0, 0.2, 0.5]
+
+    def chain(rots):
+        pos = [root]
+        for s in (1, 2):
+            pos.append(pos[-1] + rots[s - 1].apply(bones[s]))
+        return np.stack(pos, 1)
+
+    p_true, p_meas = chain(true), chain(meas)
+    q_meas = np.stack([r.as_quat() for r in meas], 1)
+    tracked = [0, 2]
+    mounts = R.from_rotvec(rng.normal(0, 0.1, (2, 3)))
+    offsets = np.array([TRACKER_SITES["Pelvis"], TRACKER_SITES["RightHand"]]) + rng.normal(0, 0.01, (2, 3))
+    Y = R.from_rotvec([0.0, math.radians(30.0), 0.0])
+    trk_rot = np.stack([(Y * true[s] * mounts[i]).as_quat() for i, s in enumerate(tracked)], 1)
+    trk_pos = np.stack([Y.apply(p_true[:, s] + true[s].apply(offsets[i])) for i, s in enumerate(tracked)], 1)
+    trk_pos += np.array([1.0, 0.0, -2.0]) + rng.normal(0, 0.001, trk_pos.shape)
+    inputs = (t, q_meas[:, tracked], p_meas[:, tracked], trk_rot, trk_pos, np.ones((T, 2), bool))
+    chain_model = SuitChain.of(q_meas, p_meas, tracked, [-1, 0, 1], prior_deg=3.0)
+    return inputs, chain_model, {"offsets": offsets, "eps": eps, "bone": bones[2]}
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_suits_segment_misalignment_is_solved_with_the_mounts(seed):
+    inputs, chain, truth = chain_scene(seed)
+    assert chain.paths == ((), ((0, 1), (1, 2))) and chain.segments == (0, 1)
+    cal = calibrate_mounts(*inputs, chain=chain)
+    without = calibrate_mounts(*inputs)
+    err = np.linalg.norm(cal.translations - truth["offsets"], axis=1)
+    err_without = np.linalg.norm(without.translations - truth["offsets"], axis=1)
+    # without the chain the mounts absorb the arm's error; with it they are within a millimetre
+    assert err.max() < 0.001 and err_without.max() > 0.005, (err, err_without)
+    assert cal.chain_segments.tolist() == [0, 1] and cal.chain_misalignment_rad.shape == (2, 3)
+    # the root's (not misaligned) stays at zero; the arm's is seen through what it does to the hand:
+    # the turn about the bone itself moves nothing and stays with the prior
+    assert np.degrees(np.abs(cal.chain_misalignment_rad[0])).max() < 0.2
+    moved = np.cross(cal.chain_misalignment_rad[1], truth["bone"]) - np.cross(truth["eps"], truth["bone"])
+    assert np.linalg.norm(moved) < 0.001
+    assert np.all(cal.chain_std_deg > 0) and np.all(cal.translation_std_m < 0.003)
+    d = cal.as_dict()
+    assert d["chain_segments"] == [0, 1] and np.allclose(d["chain_misalignment_deg"], np.degrees(cal.chain_misalignment_rad))
+    json.dumps(d, allow_nan=False)
+    assert without.chain_segments.size == 0 and without.as_dict()["chain_misalignment_deg"] == []
+
+
+def test_suit_chain_errors():
+    inputs, chain, _ = chain_scene(0, duration=4.0)
+    with pytest.raises(ValueError, match="chain has paths for 1 trackers, not 2"):
+        calibrate_mounts(*inputs, chain=SuitChain(chain.rot, chain.pos, chain.paths[:1]))
+    with pytest.raises(ValueError, match=r"chain rot/pos must have shapes \(T=120, S, 4\)"):
+        calibrate_mounts(*inputs, chain=SuitChain(chain.rot[:-1], chain.pos[:-1], chain.paths))
+    with pytest.raises(ValueError, match="chain prior_deg must be positive"):
+        calibrate_mounts(*inputs, chain=SuitChain(chain.rot, chain.pos, chain.paths, prior_deg=0.0))
+    bad = chain.pos.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="chain pos has non-finite values"):
+        calibrate_mounts(*inputs, chain=SuitChain(chain.rot, bad, chain.paths))
+    with pytest.raises(ValueError, match="parents have a cycle"):
+        SuitChain.of(chain.rot, chain.pos, [2], [1, 2, 0])
 
 
 def test_calibrate_mounts_errors():

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
 from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
@@ -62,7 +63,11 @@ class MountCalibration:
     ``translation_std_m (K,)`` (norms: sqrt of the covariance trace, inflated for residuals
     correlated over ~1 s; with tracker sites they include ``heading_std_deg``). With sites,
     ``heading_offset_deg`` is the constant heading correction the constellation search applied and
-    ``heading_std_deg`` its 1-sigma (both 0 without sites). ``outliers (T, K)``: valid samples
+    ``heading_std_deg`` its 1-sigma (both 0 without sites). With a :class:`SuitChain`:
+    ``chain_segments (A,)`` the suit segments whose misalignment was solved,
+    ``chain_misalignment_rad (A, 3)`` each one's ``eps`` (rotation vector in the segment's measured
+    frame: ``R_true = R_meas exp(-[eps]x)``) and ``chain_std_deg (A,)`` its 1-sigma (norm); empty
+    without. ``outliers (T, K)``: valid samples
     rejected (origin jumps, rotation or
     position residual above max(6 x median, 2 deg / 2 cm)). ``calibrated (K,)``: False where a
     tracker had fewer than 10 usable samples; its entries are NaN.
@@ -84,6 +89,9 @@ class MountCalibration:
     drift_knots_m: np.ndarray
     heading_offset_deg: np.ndarray = field(default_factory=lambda: np.asarray(0.0))
     heading_std_deg: np.ndarray = field(default_factory=lambda: np.asarray(0.0))
+    chain_segments: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    chain_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    chain_std_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self):
         for name in self.__dataclass_fields__:
@@ -165,7 +173,147 @@ class MountCalibration:
             "drift_knots_m": self.drift_knots_m.tolist(),
             "heading_offset_deg": float(self.heading_offset_deg),
             "heading_std_deg": float(self.heading_std_deg) if np.isfinite(self.heading_std_deg) else None,
+            "chain_segments": self.chain_segments.tolist(),
+            "chain_misalignment_deg": np.degrees(self.chain_misalignment_rad).tolist(),
+            "chain_std_deg": self.chain_std_deg.tolist(),
         }
+
+
+@dataclass(frozen=True, eq=False)
+class SuitChain:
+    """The suit's kinematic chain from its root to each tracked segment, so that
+    :func:`calibrate_mounts` can solve the suit's segment misalignments with the mounts.
+
+    An inertial suit places each segment at its parent's origin plus the bone vector turned by the
+    parent's *measured* orientation, so a constant misalignment ``eps_a`` of segment ``a`` (its
+    measured frame is the true one turned by ``exp([eps_a]x)``: ``R_a = R_true exp([eps_a]x)``; rad,
+    in its own frame) puts every segment past it off by the same vector: the true position is the
+    measured one plus ``[dp]x R_a eps_a`` to first order (``dp`` the bone from ``a`` to the next
+    segment towards the tracker, world). A hand tracker sees the sum of its arm's and spine's
+    misalignments: tens of millimetres, which without this model the tracker's mount offset and
+    the suit's drift absorb (they then carry those errors into the fit).
+
+    ``rot (T, S, 4)`` xyzw and ``pos (T, S, 3)`` m: every suit segment, suit world, on the
+    calibration's timeline (values at samples no tracker uses are ignored); ``paths``: per tracker,
+    the links ``(a, next)`` (segment indices into ``S``) from the root to its segment;
+    ``prior_deg``: prior std of each misalignment, per axis (deg).
+    """
+
+    rot: np.ndarray
+    pos: np.ndarray
+    paths: tuple
+    prior_deg: float = 2.0
+
+    @classmethod
+    def of(cls, rot, pos, tracked, parents, prior_deg: float = 2.0) -> "SuitChain":
+        """Chain to the ``tracked (K,)`` segment indices; ``parents (S,)``: each segment's parent
+        index (None or -1 for the root)."""
+        paths = []
+        for s in tracked:
+            links, cur = [], int(s)
+            while parents[cur] is not None and parents[cur] >= 0:
+                links.append((int(parents[cur]), cur))
+                cur = int(parents[cur])
+                if len(links) > len(parents):
+                    raise ValueError("parents have a cycle")
+            paths.append(tuple(reversed(links)))
+        return cls(np.asarray(rot, np.float64), np.asarray(pos, np.float64), tuple(paths), float(prior_deg))
+
+    @property
+    def segments(self) -> tuple[int, ...]:
+        """The segments whose misalignment is solved (every ``a`` of a link), sorted."""
+        return tuple(sorted({a for path in self.paths for a, _ in path}))
+
+
+class _Design:
+    """Parameters of the position solve: each tracker's mount ``m_k`` (first ``3K``) and, with a
+    :class:`SuitChain`, each chain segment's misalignment ``eps_a`` (rad), with their priors and
+    each tracker's design ``J_k(t)`` (:func:`_solve_translation`)."""
+
+    def __init__(self, K, m0, m_prec, chain: SuitChain | None, rows: np.ndarray, obs_per_sample: float):
+        self.K = K
+        segs = chain.segments if chain is not None else ()
+        self.segments = segs
+        P = 3 * K + 3 * len(segs)
+        self.prior_mean = np.zeros(P)
+        self.prior_mean[: 3 * K] = np.asarray(m0, np.float64).ravel()
+        self.prior_prec = np.full(P, float(m_prec))
+        self.links: dict[tuple[int, int], np.ndarray] = {}
+        self.paths: list[list[tuple[tuple[int, int], int]]] = [[] for _ in range(K)]
+        if chain is None:
+            return
+        T = rows.shape[0]
+        if chain.rot.shape[:1] != (T,) or chain.pos.shape[:1] != (T,) or chain.rot.shape[-1] != 4 \
+                or chain.pos.shape[-1] != 3 or chain.rot.shape[1] != chain.pos.shape[1]:  # fmt: skip
+            raise ValueError(f"chain rot/pos must have shapes (T={T}, S, 4) and (T, S, 3), got {chain.rot.shape} "
+                             f"and {chain.pos.shape}")  # fmt: skip
+        if len(chain.paths) != K:
+            raise ValueError(f"chain has paths for {len(chain.paths)} trackers, not {K}")
+        if not (chain.prior_deg > 0 and math.isfinite(chain.prior_deg)):
+            raise ValueError(f"chain prior_deg must be positive and finite, got {chain.prior_deg}")
+        self.prior_prec[3 * K:] = 1.0 / (math.radians(chain.prior_deg) ** 2 * obs_per_sample)
+        S = chain.rot.shape[1]
+        used = sorted({x for path in chain.paths for link in path for x in link})
+        ok = rows[:, None] & np.ones((1, S), bool)
+        ok[:, [x for x in range(S) if x not in used]] = False
+        if not np.all(np.isfinite(chain.pos[ok])):
+            raise ValueError("chain pos has non-finite values at used samples")
+        Ra = _matrices("chain rot", chain.rot, ok)
+        index = {a: i for i, a in enumerate(segs)}
+        for k, path in enumerate(chain.paths):
+            for a, nxt in path:
+                if (a, nxt) not in self.links:
+                    dp = np.where(rows[:, None], chain.pos[:, nxt] - chain.pos[:, a], 0.0)
+                    self.links[(a, nxt)] = _skew(dp) @ Ra[:, a]  # suit world; Y(t) is applied per heading
+                self.paths[k].append(((a, nxt), index[a]))
+
+    @property
+    def size(self) -> int:
+        return self.prior_mean.shape[0]
+
+    def blocks(self, G: np.ndarray, Yt: np.ndarray) -> list:
+        """Per tracker ``(cols, J (T, 3, P_k))`` for ``G = Y R_seg (T, K, 3, 3)``, heading ``Yt (T, 3, 3)``."""
+        turned = {link: Yt @ U for link, U in self.links.items()}
+        out = []
+        for k in range(self.K):
+            cols = [np.arange(3 * k, 3 * k + 3)]
+            mats = [G[:, k]]
+            for link, i in self.paths[k]:
+                cols.append(np.arange(3 * self.K + 3 * i, 3 * self.K + 3 * i + 3))
+                mats.append(turned[link])
+            out.append((np.concatenate(cols), np.concatenate(mats, axis=-1)))
+        return out
+
+    def solve(self, knots, j, u, G, Yt, y, w, rate):
+        """``(m (K, 3), eps (A, 3), d_knots, cov (P, P), e (T, K, 3))``: the solve and its residuals."""
+        blocks = self.blocks(G, Yt)
+        theta, d_knots, cov = _solve_translation(knots, j, u, blocks, y, w, rate, self.prior_mean, self.prior_prec)
+        d_t = _at_knots(d_knots, j, u)
+        e = y - d_t[:, None] - np.stack([Jk @ theta[cols] for cols, Jk in blocks], axis=1)
+        return theta[: 3 * self.K].reshape(self.K, 3), theta[3 * self.K:].reshape(-1, 3), d_knots, cov, e
+
+    def prior_cost(self, m, eps) -> float:
+        """Sum of the squared prior residuals over their variances (per-sample units)."""
+        theta = np.concatenate([np.ravel(m), np.ravel(eps)])
+        return float(np.sum(self.prior_prec * (theta - self.prior_mean) ** 2))
+
+    def mount_covariances(self, cov) -> np.ndarray:
+        return np.stack([cov[3 * k: 3 * k + 3, 3 * k: 3 * k + 3] for k in range(self.K)])
+
+    def chain_std_deg(self, cov) -> np.ndarray:
+        """1-sigma (deg, sqrt of the covariance trace) of each chain segment's misalignment (white)."""
+        o = 3 * self.K
+        return np.array([math.degrees(math.sqrt(max(float(np.trace(cov[o + 3 * i: o + 3 * i + 3, o + 3 * i: o + 3 * i + 3])), 0.0)))
+                         for i in range(len(self.segments))])  # fmt: skip
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` cross-product matrices of ``v (..., 3)``."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,7 +512,8 @@ def _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid):
 
 def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_spacing_s: float = 1.0,
                      drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = 0.05 / math.sqrt(60.0),
-                     rounds: int = 4, sites=None, site_prior_m: float = SITE_PRIOR_M) -> MountCalibration:  # fmt: skip
+                     rounds: int = 4, sites=None, site_prior_m: float = SITE_PRIOR_M,
+                     chain: SuitChain | None = None) -> MountCalibration:  # fmt: skip
     """Estimate tracker mounts, the suit's heading and its position drift (model in the module
     docstring).
 
@@ -434,11 +583,13 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         if not (site_prior_m > 0 and math.isfinite(site_prior_m)):
             raise ValueError(f"site_prior_m must be positive and finite, got {site_prior_m}")
         m_prec = 1.0 / (site_prior_m**2 * obs_per_sample)
+    design = _Design(K, m0, m_prec, chain, valid.any(axis=1), obs_per_sample)
     psi_knots = np.full(hk.n, _init_heading(Rs, Rt, use.astype(np.float64)))
     rot_out = np.zeros_like(valid)
     trans_out = np.zeros_like(valid)
     M = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
     m = np.zeros((K, 3))
+    eps = np.zeros((len(design.segments), 3))
     d_knots = np.zeros((dk.n, 3))
     cov_m = np.full((K, 3, 3), np.nan)
     for outer in range(2):
@@ -468,9 +619,9 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         for _ in range(4):
             inl = use & ~rot_out & ~trans_out
             w = inl * huber / sigma[None] ** 2
-            m, d_knots, cov_m = _solve_translation(dk, dj, du, G, y, w, drift_rate_m_per_sqrt_s, m0, m_prec)
+            m, eps, d_knots, cov, e = design.solve(dk, dj, du, G, Yt, y, w, drift_rate_m_per_sqrt_s)
+            cov_m = design.mount_covariances(cov)
             d_t = _at_knots(d_knots, dj, du)
-            e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
             en = np.linalg.norm(e, axis=-1)
             trans_out = _flag(en, use & ~rot_out, _TRANS_FLOOR_M)
             inl = use & ~rot_out & ~trans_out
@@ -488,11 +639,12 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     offset = 0.0
     if sites is not None:
         problem = _HeadingProblem(Rs, Rt, p_seg, p_trk, valid, inl, huber / sigma[None] ** 2, dk, dj, du,
-                                  drift_rate_m_per_sqrt_s, m0, m_prec, obs_per_sample)  # fmt: skip
+                                  drift_rate_m_per_sqrt_s, design, obs_per_sample)  # fmt: skip
         offset, heading_std = problem.search(psi)
         psi_knots = psi_knots + offset
         psi = psi + offset
-        G, M, m, d_knots, cov_m, e, en = problem.solve(psi)
+        G, M, m, eps, d_knots, cov, e, en = problem.solve(psi)
+        cov_m = design.mount_covariances(cov)
         d_t = _at_knots(d_knots, dj, du)
     counts = inl.sum(axis=0)
     calibrated = counts >= _MIN_SAMPLES
@@ -521,6 +673,8 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         outliers=valid & ~inl, calibrated=calibrated, heading_knots_s=hk.t.copy(), heading_knots_rad=psi_knots.copy(),
         drift_knots_s=dk.t.copy(), drift_knots_m=d_knots.copy(),
         heading_offset_deg=np.asarray(math.degrees(offset)), heading_std_deg=np.asarray(heading_std),
+        chain_segments=np.asarray(design.segments, np.int64), chain_misalignment_rad=eps.copy(),
+        chain_std_deg=design.chain_std_deg(cov),
     )  # fmt: skip
 
 
@@ -530,27 +684,25 @@ class _HeadingProblem:
     and per-sample position weights (``w_pos (T, K)``, 1/m^2) are those of the main solve; each
     sample counts ``obs_per_sample`` of an independent observation."""
 
-    def __init__(self, Rs, Rt, p_seg, p_trk, valid, inl, w_pos, dk, dj, du, rate, m0, m_prec, obs_per_sample):
+    def __init__(self, Rs, Rt, p_seg, p_trk, valid, inl, w_pos, dk, dj, du, rate, design: _Design, obs_per_sample):
         self.Rs, self.Rt, self.inl, self.dk, self.dj, self.du = Rs, Rt, inl, dk, dj, du
         self.p_seg = np.where(valid[..., None], p_seg, 0.0)
         self.p_trk = np.where(valid[..., None], p_trk, 0.0)
         self.w_pos = np.where(inl, w_pos, 0.0)
-        self.rate, self.m0, self.m_prec, self.scale = rate, m0, m_prec, obs_per_sample
+        self.rate, self.design, self.scale = rate, design, obs_per_sample
         self.inl_f = inl.astype(np.float64)
         self.sig_rot: np.ndarray | None = None  # per tracker, rad: set by search()
 
     def solve(self, psi):
-        """``(G, M, m, d_knots, cov_m, e, |e|)`` for heading ``psi (T,)``: ``G = Y R_seg``, mounts
-        by the closed form and the translation solve, position residuals ``e (T, K, 3)``."""
+        """``(G, M, m, eps, d_knots, cov, e, |e|)`` for heading ``psi (T,)``: ``G = Y R_seg``, mounts
+        by the closed form and the translation solve (with the chain's misalignments ``eps`` and the
+        covariance ``cov`` of all its parameters), position residuals ``e (T, K, 3)``."""
         Yt = _yaw_matrices(psi)
         G = Yt[:, None] @ self.Rs
         M, _ = _project_so3(np.einsum("tk,tkji,tkjl->kil", self.inl_f, G, self.Rt, optimize=True))
         y = self.p_trk - np.einsum("tij,tkj->tki", Yt, self.p_seg)
-        m, d_knots, cov_m = _solve_translation(self.dk, self.dj, self.du, G, y, self.w_pos, self.rate, self.m0,
-                                               self.m_prec)  # fmt: skip
-        d_t = _at_knots(d_knots, self.dj, self.du)
-        e = y - d_t[:, None] - np.einsum("tkij,kj->tki", G, m)
-        return G, M, m, d_knots, cov_m, e, np.linalg.norm(e, axis=-1)
+        m, eps, d_knots, cov, e = self.design.solve(self.dk, self.dj, self.du, G, Yt, y, self.w_pos, self.rate)
+        return G, M, m, eps, d_knots, cov, e, np.linalg.norm(e, axis=-1)
 
     def _orientation_residuals(self, psi):
         """``(solve(psi), angles (T, K) rad)``: the re-solved mounts and each sample's rotation residual."""
@@ -562,11 +714,11 @@ class _HeadingProblem:
         """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
         (over each tracker's robust scale ``sig_rot``, set by :meth:`search`), position residuals,
         drift random walk, mount-site prior."""
-        (G, M, m, d_knots, _, _, en), ang = self._orientation_residuals(psi)
+        (G, M, m, eps, d_knots, _, _, en), ang = self._orientation_residuals(psi)
         rot = float(np.sum(self.inl_f * (ang / self.sig_rot[None]) ** 2))
         pos = float(np.sum(self.w_pos * en**2))
         walk = float(np.sum(np.diff(d_knots, axis=0) ** 2)) / (self.rate**2 * self.dk.step)
-        prior = self.m_prec * float(np.sum((m - self.m0) ** 2))
+        prior = self.design.prior_cost(m, eps)
         return 0.5 * self.scale * (rot + pos + walk + prior)  # scale * m_prec = 1 / site_prior_m^2
 
     def search(self, psi) -> tuple[float, float]:
@@ -589,18 +741,20 @@ class _HeadingProblem:
         return off, math.degrees(1.0 / math.sqrt(2.0 * a))
 
 
-def _solve_translation(knots: _Knots, j, u, G, y, w, rate, prior_mean: np.ndarray, prior_precision: float):
-    """Weighted least squares for ``m (K, 3)`` and drift knots ``(J, 3)`` in
-    ``y_tk ≈ d(t) + G_tk m_k`` (weights ``w (T, K)`` in 1/m^2) with a random-walk prior on the
-    knots (increment std ``rate * sqrt(step)``) and ``m_k ~ N(prior_mean_k, 1 / prior_precision)``
-    per axis (``prior_precision`` in 1/m^2). Returns ``m``, knots and the covariance ``(K, 3, 3)``
-    of ``m``. The drift block is banded (same for each axis); ``m`` comes from its Schur
-    complement."""
+def _solve_translation(knots: _Knots, j, u, blocks, y, w, rate, prior_mean: np.ndarray, prior_precision: np.ndarray):
+    """Weighted least squares for the dense parameters ``theta (P,)`` and drift knots ``(J, 3)`` in
+    ``y_tk ≈ d(t) + J_k(t) theta[cols_k]`` (weights ``w (T, K)`` in 1/m^2), with a random-walk prior on
+    the knots (increment std ``rate * sqrt(step)``) and ``theta ~ N(prior_mean, 1 / prior_precision)``
+    (both ``(P,)``; precisions in 1/unit^2). ``blocks``: per tracker ``k`` a pair ``(cols_k (P_k,)
+    int, J_k (T, 3, P_k))``: which parameters its position depends on, and how (its mount ``m_k``
+    through ``G_tk``, and the suit's segment misalignments on its chain). Returns ``theta``, the
+    knots and the covariance ``(P, P)`` of ``theta``. The drift block is banded (same for each
+    axis); ``theta`` comes from its Schur complement."""
     T, K = w.shape
     n = knots.n
+    P = prior_mean.shape[0]
     jj, uu = np.repeat(j, K), np.repeat(u, K)
-    wf = w.ravel()
-    diag, off1, _ = knots.normal(jj, uu, wf)
+    diag, off1, _ = knots.normal(jj, uu, w.ravel())
     prior = 1.0 / (rate * rate * knots.step)
     diag = diag.copy()
     diag[:-1] += prior
@@ -610,33 +764,28 @@ def _solve_translation(knots: _Knots, j, u, G, y, w, rate, prior_mean: np.ndarra
     ab = np.zeros((2, n))
     ab[1] = diag
     ab[0, 1:] = off1
-    Gf = G.reshape(T * K, 3, 3)
-    yf = y.reshape(T * K, 3)
-    kk = np.tile(np.arange(K), T)
-    # Ndm[a][knot, k*3 + c] = sum w B_knot G[a, c]
-    Ndm = np.zeros((3, n, K * 3))
-    bd = np.zeros((3, n))
-    for a in range(3):
-        bd[a] = np.bincount(jj, wf * (1 - uu) * yf[:, a], n) + np.bincount(jj + 1, wf * uu * yf[:, a], n)
-        for c in range(3):
-            val = wf * Gf[:, a, c]
-            col = kk * 3 + c
-            Ndm[a] += np.bincount(jj * K * 3 + col, val * (1 - uu), n * K * 3).reshape(n, K * 3)
-            Ndm[a] += np.bincount((jj + 1) * K * 3 + col, val * uu, n * K * 3).reshape(n, K * 3)
-    wk = np.bincount(kk, wf, K)
-    bm = np.stack([np.bincount(kk, wf * np.einsum("nji,nj->ni", Gf, yf)[:, c], K) for c in range(3)], -1).ravel()
-    S = np.diag(np.repeat(wk, 3) + prior_precision)
-    rhs = bm + prior_precision * np.asarray(prior_mean, np.float64).ravel()
+    # B (n, T): hat-function weights of the samples on the knots
+    rows = np.concatenate([j, j + 1])
+    B = sparse.csr_matrix((np.concatenate([1 - u, u]), (rows, np.concatenate([np.arange(T)] * 2))), shape=(n, T))
+    Ndm = np.zeros((3, n, P))  # Ndm[a][knot, p] = sum w B_knot J[a, p]
+    bd = B @ np.einsum("tk,tka->ta", w, y)  # (n, 3)
+    S = np.diag(np.asarray(prior_precision, np.float64).copy())
+    rhs = prior_precision * prior_mean
+    for k, (cols, Jk) in enumerate(blocks):
+        wJ = w[:, k, None, None] * Jk  # (T, 3, P_k)
+        for a in range(3):
+            Ndm[a][:, cols] += B @ wJ[:, a]
+        S[np.ix_(cols, cols)] += np.einsum("tai,taj->ij", wJ, Jk, optimize=True)
+        rhs[cols] += np.einsum("tai,ta->i", wJ, y[:, k], optimize=True)
     X = np.empty_like(Ndm)
-    z = np.empty_like(bd)
+    z = np.empty((3, n))
     for a in range(3):
-        sol = solveh_banded(ab, np.column_stack([Ndm[a], bd[a]]))
+        sol = solveh_banded(ab, np.column_stack([Ndm[a], bd[:, a]]))
         X[a], z[a] = sol[:, :-1], sol[:, -1]
         S -= Ndm[a].T @ X[a]
         rhs -= Ndm[a].T @ z[a]
     S = 0.5 * (S + S.T)
     cov = np.linalg.inv(S)
-    mv = cov @ rhs
-    d_knots = np.stack([z[a] - X[a] @ mv for a in range(3)], -1)
-    cov_k = np.stack([cov[3 * k: 3 * k + 3, 3 * k: 3 * k + 3] for k in range(K)])
-    return mv.reshape(K, 3), d_knots, cov_k
+    theta = cov @ rhs
+    d_knots = np.stack([z[a] - X[a] @ theta for a in range(3)], -1)
+    return theta, d_knots, cov

@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
 from dualhuman_builder.rig import tracker_site
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.fileio import load_npz, save_npz
@@ -41,6 +41,10 @@ MAX_GAP_S = 0.05
 #: Knot spacing (s) of the suit position drift solved with the mounts: the drift is slow, and
 #: finer knots let it absorb the suit's limb errors and the mounts' offsets.
 MOUNT_DRIFT_KNOTS_S = 1.0
+#: Prior std per axis (deg) of each suit segment's constant misalignment, solved with the mounts
+#: (:class:`~dualhuman_builder.sync.mount.SuitChain`).
+CHAIN_PRIOR_DEG = 2.0
+_PARENT_INDEX = [MVN_SEGMENTS.index(MVN_PARENTS[g]) if MVN_PARENTS[g] else -1 for g in MVN_SEGMENTS]
 #: Speed spread (std) below which a stream is too still for a lag: angular rad/s, linear m/s.
 MIN_ANGULAR_MOTION = 0.02
 MIN_LINEAR_MOTION = 0.02
@@ -180,7 +184,7 @@ def _ms(x: float) -> float:
 
 
 def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = None, use_trackers: bool = True,
-                progress: Callable[[str], None] | None = None) -> SyncResult:  # fmt: skip
+                progress: Callable[[str], None] | None = None, suit_chain: bool = True) -> SyncResult:  # fmt: skip
     """Put a take's suits and trackers on one timeline at ``fps`` (see the module docstring).
 
     ``columns``: :func:`read_columns` of the take. ``actors``: which actors, in order (default: the
@@ -188,7 +192,7 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     fusion buys)."""
     from dualhuman_builder.sync.clock import fit_clock
     from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed
-    from dualhuman_builder.sync.mount import calibrate_mounts
+    from dualhuman_builder.sync.mount import SuitChain, calibrate_mounts
 
     say = progress or (lambda _m: None)
     if not fps > 0:
@@ -304,11 +308,13 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 a.trk_valid[:, k] = ok1 & ok2
             seg_idx = [MVN_SEGMENTS.index(g) for g in a.segments]
             usable = a.trk_valid & a.suit_valid[:, None]
+            chain = SuitChain.of(np.nan_to_num(a.suit_rot), np.nan_to_num(a.suit_pos), seg_idx, _PARENT_INDEX,
+                                 prior_deg=CHAIN_PRIOR_DEG) if suit_chain else None  # fmt: skip
             try:
                 a.mounts = calibrate_mounts(times, np.nan_to_num(a.suit_rot[:, seg_idx]), np.nan_to_num(a.suit_pos[:, seg_idx]),
                                             np.nan_to_num(a.trk_rot), np.nan_to_num(a.trk_pos), usable,
                                             drift_knot_spacing_s=MOUNT_DRIFT_KNOTS_S,
-                                            sites=np.array([tracker_site(g) for g in a.segments]))  # fmt: skip
+                                            sites=np.array([tracker_site(g) for g in a.segments]), chain=chain)  # fmt: skip
             except ValueError as e:
                 report.setdefault("warnings", []).append(f"{name}: tracker mounts not calibrated ({e}); fitting without trackers")
                 a.serials, a.segments, a.trk_rot, a.trk_pos, a.trk_valid = (), (), None, None, None
