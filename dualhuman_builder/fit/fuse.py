@@ -4,11 +4,14 @@ The trackers are the reference: the sync stage solved each tracker's mount on it
 suit's heading ``psi(t)`` and position drift ``d(t)`` against the tracker world
 (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`). Fusion applies them to every segment::
 
-    R'(t) = Y(psi(t)) R_suit(t)        p'(t) = Y(psi(t)) p_suit(t) + d(t)
+    R'(t) = Y(psi(t)) R_suit(t) exp(-[eps]x)        p'(t) = Y(psi(t)) p_suit(t) + d(t)
 
-and then pulls each tracked segment onto its tracker (origin ``p_tr - R' m``): the correction is
-kept where the tracker is valid, bridged linearly across dropouts (no jump when a tracker comes
-back) and held at the edges. Tracker samples that disagree with the suit by more than
+where ``eps`` is each segment's constant misalignment solved with the mounts along the chains from
+the pelvis to the trackers (:class:`~dualhuman_builder.sync.mount.SuitChain`; zero elsewhere), and
+each tracker's offset solved in the measured frame is turned into the corrected one
+(``exp([eps]x) m``). Then fusion pulls each tracked segment onto its tracker (origin
+``p_tr - R' m``): the correction is kept where the tracker is valid, bridged linearly across
+dropouts (no jump when a tracker comes back) and held at the edges. Tracker samples that disagree with the suit by more than
 :data:`JUMP_M` (a tracker that lost tracking and reports the origin, or a swapped tracker) are
 rejected, as are those the mount calibration flagged.
 
@@ -80,6 +83,10 @@ def fuse_actor(streams, times_s: np.ndarray, fps: float) -> FusedActor:
     q = np.where(valid[:, None, None], rot, np.array([0.0, 0.0, 0.0, 1.0]))
     r_suit = Rotation.from_quat(q.reshape(-1, 4))
     r_fused = Rotation.from_quat(np.repeat(yaw.as_quat(), S, axis=0)) * r_suit
+    # the suit's segment misalignments solved with the mounts: R_true = R_meas exp(-[eps]x)
+    misalign = chain_corrections(mounts, S)
+    if np.any(misalign):
+        r_fused = r_fused * Rotation.from_rotvec(np.tile(-misalign, (T, 1)))
     p_fused = np.empty((T, S, 3))
     for s in range(S):
         p_fused[:, s] = yaw.apply(np.where(valid[:, None], pos[:, s], 0.0)) + np.nan_to_num(mounts.drift)
@@ -90,6 +97,8 @@ def fuse_actor(streams, times_s: np.ndarray, fps: float) -> FusedActor:
     trk_valid &= np.asarray(mounts.calibrated, bool)[None, :]
     trk_pos = np.asarray(streams.trk_pos, dtype=np.float64)
     offsets = np.nan_to_num(np.asarray(mounts.translations, dtype=np.float64))
+    # an offset solved in the measured frame, in the corrected one: R_meas m = R_true exp([eps]x) m
+    offsets = Rotation.from_rotvec(misalign[seg_idx]).apply(offsets)
     for k in range(K):
         s = seg_idx[k]
         implied = trk_pos[:, k] - np.einsum("tij,j->ti", r_fused_m[:, s], offsets[k])
@@ -109,6 +118,16 @@ def fuse_actor(streams, times_s: np.ndarray, fps: float) -> FusedActor:
                        orientation_valid=vmask, position_valid=vmask, meta={"fused_with_trackers": True})  # fmt: skip
     return FusedActor(sk, tuple(streams.serials), np.where(trk_valid[..., None], trk_pos, np.nan), trk_valid, seg_idx,
                       offsets, True, stats)  # fmt: skip
+
+
+def chain_corrections(mounts, num_segments: int) -> np.ndarray:
+    """``(S, 3)`` rotation vectors (rad): each suit segment's misalignment ``eps`` solved with the
+    mounts (:class:`~dualhuman_builder.sync.mount.SuitChain`), zero where none was solved."""
+    out = np.zeros((num_segments, 3))
+    segs = np.asarray(getattr(mounts, "chain_segments", np.zeros(0)), np.int64)
+    if segs.size:
+        out[segs] = np.nan_to_num(np.asarray(mounts.chain_misalignment_rad, np.float64))
+    return out
 
 
 def _ns(times_s: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 from dualhuman_builder.errors import WorkspaceError
 from dualhuman_builder.fit.fitter import FitConfig
 
-STAGE_VERSION = "2"  # 2: heading from the tracker constellation (mount sites)
+STAGE_VERSION = "3"  # 2: heading from the tracker constellation (mount sites); 3: the suit's segment misalignments
 
 
 def _take_file(ws, take: str):
