@@ -685,20 +685,24 @@ def _take_options(f):
     f = click.option("--fps", type=click.FloatRange(min=1.0, max=1000.0), default=30.0, show_default=True,
                      help="Frame rate of the common timeline (and of the fitted bodies).")(f)
     f = click.option("--no-trackers", is_flag=True, help="Ignore the trackers (fusion falls back to the suit's drifting positions; flagged).")(f)
+    f = click.option("--no-suit-chain", is_flag=True,
+                     help="Do not solve the suit's segment misalignments with the tracker mounts (to see what they buy).")(f)
     f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
     return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
 
 
 @main.command()
 @_take_options
-def sync(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool):
+def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool):
     """Put a take's streams on one timeline and calibrate the trackers.
 
     Per stream: its clock's offset and drift against the host (a robust fit of the lower envelope
     of device-vs-host stamps: delayed packets are rejected). Per tracker: the residual lag against
     the suit segment it is strapped to (cross-correlation of angular speeds) and its mounting
-    rotation and offset (least squares, with the suit's heading and position drift). Writes
-    sync.npz and sync.json (estimates with 1-sigma uncertainties).
+    rotation and offset (least squares, with the suit's heading and position drift, and the
+    suit's segment misalignments along each tracker's chain from the pelvis: a suit's limbs sit
+    where its measured orientations put them, tens of millimetres off, and the offsets would
+    otherwise absorb that). Writes sync.npz and sync.json (estimates with 1-sigma uncertainties).
 
     Example:  dualhuman sync WS --take T001
     """
@@ -706,18 +710,19 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool)
     from dualhuman_builder.workspace import Workspace
 
     with Workspace.open(workspace) as ws:
-        res = run_sync(ws, take, fps=fps, use_trackers=not no_trackers, force=force, log=console.print)
+        res = run_sync(ws, take, fps=fps, use_trackers=not no_trackers, force=force, log=console.print,
+                       suit_chain=not no_suit_chain)  # fmt: skip
         console.print(f"sync {'up to date' if res.skipped else 'done'}: {res.artifacts.get('sync.json')}", highlight=False)
 
 
 @main.command()
 @_take_options
-def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool):
+def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool):
     """Fuse each actor's suit and trackers into one drift-free skeleton.
 
-    Suit orientations (heading-corrected against the tracker world), positions corrected by the
-    trackers (the drift-free reference); tracker jumps rejected, dropouts bridged smoothly.
-    Runs `sync` first if needed.
+    Suit orientations (heading-corrected against the tracker world, each segment turned by the
+    misalignment sync solved), positions corrected by the trackers (the drift-free reference);
+    tracker jumps rejected, dropouts bridged smoothly. Runs `sync` first if needed.
 
     Example:  dualhuman fuse WS --take T001
     """
@@ -725,7 +730,8 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool)
     from dualhuman_builder.workspace import Workspace
 
     with Workspace.open(workspace) as ws:
-        res = run_fuse(ws, take, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
+        res = run_fuse(ws, take, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
+                       suit_chain=not no_suit_chain)  # fmt: skip
         console.print(f"fuse {'up to date' if res.skipped else 'done'}", highlight=False)
 
 
@@ -736,8 +742,8 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool)
               help="Keep anny's relaxed fingers: do not let the collision term open the hands (thumb and fingers).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit, e.g. cuda.")
-def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, no_collision: bool, relaxed_hands: bool,
-        window: int, device: str):  # fmt: skip
+def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool, no_collision: bool,
+        relaxed_hands: bool, window: int, device: str):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
@@ -756,7 +762,8 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, force: bool, 
 
     cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, window=window, device=device)
     with Workspace.open(workspace) as ws:
-        res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers)
+        res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
+                      suit_chain=not no_suit_chain)  # fmt: skip
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
 
 

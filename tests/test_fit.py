@@ -127,9 +127,10 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev["clock_offset_error_ms"] < 5.0
     assert ev["foot_slide_mm"] < 5.0
     # the collision passes take the skeleton pass's hand overlap (10-20 mm; 9.8 in one recording since the
-    # heading search weighs the orientations properly) down to the tolerance (2 mm; ~1 mm measured), within
-    # the issue's 5 mm whatever the recording's timing
-    assert ev["max_penetration_before_mm"] > 7 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
+    # heading search weighs the orientations properly, 6.8-7.1 since sync solves the suit's misalignments)
+    # down to the tolerance (2 mm; ~1 mm measured), within the issue's 5 mm whatever the recording's timing
+    assert ev["max_penetration_before_mm"] > 4 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
+    assert ev["max_penetration_mm"] < 0.5 * ev["max_penetration_before_mm"], tf.fit.summary
     assert ev["penetrating_share"] < 0.5 * ev["penetrating_share_before"]
     # the suit gives no fingers: the collision passes opened the clasped hands, within the openings' range
     opening = np.stack([tf.fit.frames[f"hand opening (0 relaxed, 1 flat)/{a}"] for a in ("sim-a", "sim-b")])
@@ -204,7 +205,9 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
     # every segment between the pelvis and a tracker (16 of MVN's 23), none solved without the chain
     assert len(a.mounts.chain_segments) == 16 and without.actors[0].mounts.chain_segments.size == 0
     assert np.degrees(np.linalg.norm(a.mounts.chain_misalignment_rad, axis=1)).max() < 10.0
-    assert set(with_chain.report["mounts"]) == {"sim-a", "sim-b"}
+    assert set(with_chain.report["mounts"]) == {"sim-a", "sim-b"} and "suit_misalignment" not in without.report
+    arm = with_chain.report["suit_misalignment"]["sim-a"]["RightUpperArm"]
+    assert len(arm["rotation_deg"]) == 3 and 0 < arm["std_deg"] < 5
     # fusion turns each solved segment by -eps (RightUpperArm: untracked, on the right hand's chain)
     fused = fuse_actor(a, with_chain.times_s, 15.0)
     s = MVN_SEGMENTS.index("RightUpperArm")

@@ -36,21 +36,22 @@ def _take_file(ws, take: str):
 
 
 def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force: bool = False, log: Callable = print,
-             take_file=None, depends_on=()):  # fmt: skip
+             take_file=None, depends_on=(), suit_chain: bool = True):  # fmt: skip
     """``take_file``: read this .mcap instead of the take's registered file (the demo records its
-    take as an artifact of its ``capture`` stage, named in ``depends_on``)."""
+    take as an artifact of its ``capture`` stage, named in ``depends_on``). ``suit_chain=False``:
+    do not solve the suit's segment misalignments with the mounts (:func:`synchronise`)."""
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.sync.timeline import synchronise
 
     def compute(out):
         columns = read_columns(take_file) if take_file is not None else _read(ws, take)
-        sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=log)
+        sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=log, suit_chain=suit_chain)
         sync.save(out.path("sync.npz"))
         out.path("sync.json").write_text(json.dumps(sync.report, indent=2, default=_json))
         return {"frames": int(len(sync.times_s)), "actors": [a.actor for a in sync.actors],
                 "trackers": {a.actor: len(a.serials) for a in sync.actors}}  # fmt: skip
 
-    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers},
+    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers, **({} if suit_chain else {"suit_chain": False})},
                         depends_on=list(depends_on), version=STAGE_VERSION, force=force)  # fmt: skip
 
 

@@ -13,8 +13,9 @@ Trackers
     cross-correlating angular-speed magnitudes (independent of how the tracker is mounted,
     :func:`~dualhuman_builder.sync.lag.estimate_lag`); trackers of one source share a clock, so
     their lags are combined into one correction. Then each tracker's mounting rotation and offset on
-    its segment, the suit's heading against the tracker world and the suit's position drift are
-    solved by least squares (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`).
+    its segment, the suit's heading against the tracker world, the suit's position drift and its
+    segments' misalignments along each tracker's chain are solved by least squares
+    (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`).
 
 Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
 ``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
@@ -189,7 +190,10 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
 
     ``columns``: :func:`read_columns` of the take. ``actors``: which actors, in order (default: the
     suits' order); every one needs a suit. ``use_trackers=False`` ignores trackers (to measure what
-    fusion buys)."""
+    fusion buys). ``suit_chain`` (default True): solve each suit segment's constant misalignment on
+    the chains from the pelvis to the trackers with the mounts
+    (:class:`~dualhuman_builder.sync.mount.SuitChain`, prior :data:`CHAIN_PRIOR_DEG`); False leaves
+    the suit's limb errors to the mounts and the drift, as before."""
     from dualhuman_builder.sync.clock import fit_clock
     from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed
     from dualhuman_builder.sync.mount import SuitChain, calibrate_mounts
@@ -320,6 +324,10 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 a.serials, a.segments, a.trk_rot, a.trk_pos, a.trk_valid = (), (), None, None, None
             else:
                 report["mounts"][name] = {serial: describe_mount(a.mounts, k) for k, serial in enumerate(a.serials)}
+                if len(a.mounts.chain_segments):
+                    report.setdefault("suit_misalignment", {})[name] = {
+                        MVN_SEGMENTS[g]: {"rotation_deg": np.round(np.degrees(e), 3).tolist(), "std_deg": round(float(sd), 3)}
+                        for g, e, sd in zip(a.mounts.chain_segments, a.mounts.chain_misalignment_rad, a.mounts.chain_std_deg)}  # fmt: skip
                 h_std = float(a.mounts.heading_std_deg)
                 report.setdefault("heading", {})[name] = {"offset_deg": round(float(a.mounts.heading_offset_deg), 3),
                                                           "std_deg": round(h_std, 3) if np.isfinite(h_std) else None}
