@@ -9,6 +9,7 @@ the previous window's last frames), by L-BFGS on::
                    + sum_trackers |site - p_tracker|^2 / s_t^2  tracker positions (drift-free reference)
                    + sum_joints |accel|^2 / s_a^2            temporal smoothness (22 joints)
                    + sum_soles relu(-y)^2 / s_f^2             no foot below the floor
+                   + sum_stance (min_sole y)^2 / s_c^2        a foot in stance stands on it
                    + sum_stance |sole step|^2 / s_s^2         no sliding while a foot is in stance
                    + sum_hands (o / s_h)^2 + |o''|^2 / s_ha^2  hand openings: relaxed unless pushed ]
       + w_c * collision(verts_a, verts_b)                     SDF term, frames where the bodies are close
@@ -92,6 +93,9 @@ class FitConfig:
     #: gets another with the weight x4, up to this many passes in all
     collision_rounds: int = 6
     collision_tolerance_m: float = 0.002
+    #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
+    #: half the issue's goal, so a palm resting a millimetre deep on the partner goes round again too)
+    collision_share_tolerance: float = 0.0005
     #: once per window, frames that a full round left deeper than the tolerance and barely moved
     #: (less than 20 %) start the next round from their neighbours' answer
     collision_restart: bool = True
@@ -101,6 +105,9 @@ class FitConfig:
     sigma_accel_m_s2: float = 4.0
     sigma_floor_m: float = 0.002
     sigma_slide_m: float = 0.002
+    #: a foot in stance stands on the floor: its lowest sole vertex at height 0 (m); 0 turns
+    #: the term off (then nothing but the trackers holds a standing body down)
+    sigma_contact_m: float = 0.002
     #: the collision loss is a mean over both meshes' vertices (~27,000): this makes a vertex 2 mm deep
     #: cost about as much as a tracker 4 mm off
     collision_weight: float = 3e5
@@ -245,6 +252,11 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
         s_a = cfg.sigma_accel_m_s2 / fps**2
         e = e + acc.pow(2).sum() / s_a**2
     e = e + torch.relu(-soles[..., 1]).pow(2).sum() / cfg.sigma_floor_m**2
+    if cfg.sigma_contact_m > 0:
+        n = act.n_sole
+        y = torch.stack([soles[:, :n, 1], soles[:, n:, 1]], 1)  # (W, 2, n)
+        low = y.amin(-1)  # (W, 2); a soft minimum would sit below the lowest of a flat sole's many low points
+        e = e + (low.pow(2) * act.stance[sl].float()).sum() / cfg.sigma_contact_m**2
     if soles_all.shape[0] >= 2:
         n = act.n_sole
         feet = torch.stack([soles_all[:, :n].mean(1), soles_all[:, n:].mean(1)], 1)  # (W', 2, 3)
@@ -402,7 +414,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                 # neighbours are refitted. Frames pushed into contact by their neighbours join.
                 with torch.no_grad():
                     vs = [p.vertices for p in pose_all(slice(None))]
-                    left = collide.penetration(vs[0], vs[1], keys=range(s0, s1))["max_depth_m"]
+                    now_pen = collide.penetration(vs[0], vs[1], keys=range(s0, s1))
+                    left = now_pen["max_depth_m"]
                 if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
                     rounds_used = max(rounds_used, n_round)
                 if left.max() > best[0]:
@@ -413,7 +426,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
                     worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                 else:
                     best = (float(left.max()), [p.detach().clone() for p in params], left)
-                    if left.max() <= cfg.collision_tolerance_m:
+                    if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
                         break
                 hit = np.union1d(hit, np.flatnonzero(left > 0))
                 if what == "all" and cfg.collision_restart and not restarted and n_round >= 2:
