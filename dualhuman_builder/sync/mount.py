@@ -267,10 +267,6 @@ class _Design:
                     self.links[(a, nxt)] = _skew(dp) @ Ra[:, a]  # suit world; Y(t) is applied per heading
                 self.paths[k].append(((a, nxt), index[a]))
 
-    @property
-    def size(self) -> int:
-        return self.prior_mean.shape[0]
-
     def blocks(self, G: np.ndarray, Yt: np.ndarray) -> list:
         """Per tracker ``(cols, J (T, 3, P_k))`` for ``G = Y R_seg (T, K, 3, 3)``, heading ``Yt (T, 3, 3)``."""
         turned = {link: Yt @ U for link, U in self.links.items()}
