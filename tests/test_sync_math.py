@@ -448,6 +448,19 @@ def test_tracker_sites_leave_a_turning_actor_to_its_data():
         calibrate_mounts(*inputs, sites=sites, site_prior_m=0.0)
 
 
+def test_the_trackers_common_offset_is_known_from_turning_segments_only():
+    """The part all offsets share (where the root is) cannot be told from the suit's drift while no
+    segment turns: it then rests on the sites' 2 cm prior, ~14 mm for six trackers (the simulated
+    handshakes: 14-16 mm); this actor's 2-degree sway gives ~5 mm, segments turning freely 0.1 mm."""
+    inputs, truth = still_actor(0)
+    still = calibrate_mounts(*inputs, sites=truth["sites"])
+    inputs, truth = mount_scene(1, rate=30.0)
+    turning = calibrate_mounts(*inputs, sites=truth["offsets"])
+    c_still, c_turning = float(still.common_offset_std_m), float(turning.common_offset_std_m)
+    assert 3e-3 < c_still < 16e-3 and c_turning < 1e-3 and c_still > 20 * c_turning, (c_still, c_turning)
+    assert still.as_dict()["common_offset_std_mm"] == pytest.approx(float(still.common_offset_std_m) * 1000, abs=1e-3)
+
+
 def test_a_turning_actors_heading_follows_its_orientations_over_a_skewed_constellation():
     """Orientations (0.3 deg noise, segments turning) say the heading is psi; the tracker positions
     were made 2 degrees further round (a systematic error the position model cannot absorb). The

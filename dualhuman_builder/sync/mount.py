@@ -67,7 +67,10 @@ class MountCalibration:
     ``chain_segments (A,)`` the suit segments whose misalignment was solved,
     ``chain_misalignment_rad (A, 3)`` each one's ``eps`` (rotation vector in the segment's measured
     frame: ``R_true = R_meas exp(-[eps]x)``) and ``chain_std_deg (A,)`` its 1-sigma (norm); empty
-    without. ``outliers (T, K)``: valid samples
+    without. ``common_offset_std_m``: 1-sigma (m, norm) of the part all trackers' offsets share, seen
+    in the world over the take (their mean world position relative to their segments): what the
+    actor's root is known to. An actor who turns no segment cannot tell it from the suit's drift, so
+    it rests on the sites' prior (about ``site_prior_m * sqrt(3 / K)``). ``outliers (T, K)``: valid samples
     rejected (origin jumps, rotation or
     position residual above max(6 x median, 2 deg / 2 cm)). ``calibrated (K,)``: False where a
     tracker had fewer than 10 usable samples; its entries are NaN.
@@ -92,6 +95,7 @@ class MountCalibration:
     chain_segments: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     chain_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     chain_std_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    common_offset_std_m: np.ndarray = field(default_factory=lambda: np.asarray(float("nan")))
 
     def __post_init__(self):
         for name in self.__dataclass_fields__:
@@ -176,6 +180,7 @@ class MountCalibration:
             "chain_segments": self.chain_segments.tolist(),
             "chain_misalignment_deg": np.degrees(self.chain_misalignment_rad).tolist(),
             "chain_std_deg": self.chain_std_deg.tolist(),
+            "common_offset_std_mm": round(float(self.common_offset_std_m) * 1000, 3) if np.isfinite(self.common_offset_std_m) else None,
         }
 
 
@@ -295,6 +300,17 @@ class _Design:
 
     def mount_covariances(self, cov) -> np.ndarray:
         return np.stack([cov[3 * k: 3 * k + 3, 3 * k: 3 * k + 3] for k in range(self.K)])
+
+    def common_std_m(self, G, Yt, cov, inl) -> float:
+        """``sqrt(tr(A cov A^T))`` (m): the spread of the trackers' mean world offset from their
+        segments (mount and chain terms, averaged over the inlier samples) under ``cov``, in the
+        solve's per-sample units (divide by ``sqrt(obs_per_sample)`` for a 1-sigma)."""
+        A = np.zeros((3, self.prior_mean.shape[0]))
+        w = inl.astype(np.float64)
+        for k, (cols, Jk) in enumerate(self.blocks(G, Yt)):
+            if w[:, k].sum() > 0:
+                A[:, cols] += np.einsum("t,tap->ap", w[:, k], Jk) / w[:, k].sum() / self.K
+        return math.sqrt(max(float(np.trace(A @ cov @ A.T)), 0.0))
 
     def chain_std_deg(self, cov) -> np.ndarray:
         """1-sigma (deg, sqrt of the covariance trace) of each chain segment's misalignment (white)."""
@@ -671,6 +687,7 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         heading_offset_deg=np.asarray(math.degrees(offset)), heading_std_deg=np.asarray(heading_std),
         chain_segments=np.asarray(design.segments, np.int64), chain_misalignment_rad=eps.copy(),
         chain_std_deg=design.chain_std_deg(cov),
+        common_offset_std_m=np.asarray(design.common_std_m(G, _yaw_matrices(psi), cov, inl) / math.sqrt(obs_per_sample)),
     )  # fmt: skip
 
 

@@ -331,6 +331,10 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 h_std = float(a.mounts.heading_std_deg)
                 report.setdefault("heading", {})[name] = {"offset_deg": round(float(a.mounts.heading_offset_deg), 3),
                                                           "std_deg": round(h_std, 3) if np.isfinite(h_std) else None}
+                # what the actor's root is known to: the trackers' shared offset (an actor who turns no
+                # segment leaves it to the sites' prior, ~14 mm for six trackers at 2 cm)
+                c_std = float(a.mounts.common_offset_std_m)
+                report.setdefault("common_offset", {})[name] = {"std_mm": round(c_std * 1000, 2) if np.isfinite(c_std) else None}
                 if not h_std <= HEADING_WARN_DEG:
                     report.setdefault("warnings", []).append(
                         f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
