@@ -31,7 +31,7 @@ GOALS = {"mpjpe_mm": 15.0, "root_mm": 10.0, "max_penetration_mm": 5.0, "penetrat
          "clock_offset_error_ms": 1.0, "mount_rotation_error_deg": 1.0, "foot_slide_mm": 5.0}  # fmt: skip
 COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetration_mm", "max_penetration_off_mm",
            "penetrating_share_pct", "penetrating_share_off_pct", "clock_offset_error_ms", "mount_rotation_error_deg",
-           "foot_slide_mm", "fit_pairs_per_s")  # fmt: skip
+           "mount_offset_error_mm", "foot_slide_mm", "fit_pairs_per_s")  # fmt: skip
 
 
 def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model) -> dict:
@@ -63,6 +63,7 @@ def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
         "penetrating_share_pct": 100 * ev["penetrating_share"], "penetrating_share_off_pct": 100 * ev["penetrating_share_before"],
         "clock_offset_error_ms": ev.get("clock_offset_error_ms", float("nan")),
         "mount_rotation_error_deg": ev.get("mount_rotation_error_deg", float("nan")),
+        "mount_offset_error_mm": ev.get("mount_translation_error_mm", float("nan")),
         "foot_slide_mm": ev["foot_slide_mm"], "fit_pairs_per_s": ev["frames"] / wall,
         "collision_rounds_used": tf.fit.summary.get("collision_rounds_used"),
     }  # fmt: skip

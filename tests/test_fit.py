@@ -178,6 +178,7 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
 
     from dualhuman_builder.body.mapping import MVN_SEGMENTS
     from dualhuman_builder.capture.log.reader import read_columns
+    from dualhuman_builder.fit.evaluate import mount_errors
     from dualhuman_builder.fit.fuse import fuse_actor
     from dualhuman_builder.sim.studio import simulate_studio
 
@@ -185,17 +186,8 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
     columns = read_columns(take)
     studio = simulate_studio(scene.sequence, seed=1)
 
-    def offset_errors(sync):
-        out = []
-        for k, a in enumerate(sync.actors):
-            st, su = studio.trackers[k], studio.suits[k]
-            for j, serial in enumerate(a.serials):
-                i = st.serials.index(serial)
-                seg = MVN_SEGMENTS.index(st.segments[i])
-                # the offset seen from the suit's (misaligned) segment frame, where sync solves it
-                truth = Rotation.from_quat(np.array(su.misalignment[seg])).inv().apply(np.array(st.mount_translation[i]))
-                out.append(np.linalg.norm(a.mounts.translations[j] - truth))
-        return np.array(out)
+    def offset_errors(sync):  # m, per tracker: where sync solves it, the suit's (misaligned) segment frame
+        return mount_errors(sync, studio)["translation_mm"] / 1000
 
     with_chain = synchronise(columns, fps=15.0)
     without = synchronise(columns, fps=15.0, suit_chain=False)

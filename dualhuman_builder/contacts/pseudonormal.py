@@ -18,8 +18,9 @@ build and per-point tree walk:
   build theirs (only for the edges and vertices asked about; normalising does not change a sign).
 
 :class:`MeshAdjacency` holds the index arrays this needs, built once per topology.
-``tests/test_contacts.py`` checks value and sign against ``igl.signed_distance`` of the whole
-mesh on the closest faces libigl reports.
+``tests/test_pseudonormal.py`` checks value and sign against ``igl.signed_distance`` of the
+whole mesh on the closest faces libigl reports (a posed anny body, every feature kind), and
+``tests/test_contacts.py`` the contacts built on it against the brute force.
 """
 
 from __future__ import annotations

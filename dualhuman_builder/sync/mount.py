@@ -4,7 +4,7 @@ Model, for ``K`` trackers on one actor, tracker ``k`` strapped to suit segment `
 on one common timeline ``t``::
 
     R_tr,k(t) = Y(t) R_seg,k(t) M_k
-    p_tr,k(t) = Y(t) p_seg,k(t) + d(t) + Y(t) R_seg,k(t) m_k
+    p_tr,k(t) = Y(t) p_seg,k(t) + d(t) + Y(t) R_seg,k(t) m_k  [+ Y(t) sum_a [dp_a]x R_a eps_a]
 
 * ``R_seg``, ``p_seg``: the suit's segment orientation (segment -> suit world) and origin (suit
   world, m); ``R_tr``, ``p_tr``: the tracker's pose in the tracker world (drift-free reference);
@@ -13,7 +13,10 @@ on one common timeline ``t``::
 * ``Y(t)``: rotation about world +Y by ``psi(t)`` (rad), the suit's heading in the tracker world (a
   constant offset plus a slow drift), piecewise linear on knots;
 * ``d(t)``: translation (m, tracker world), the suit's position drift plus any constant offset
-  between the worlds, piecewise linear on finer knots with a random-walk prior.
+  between the worlds, piecewise linear on finer knots with a random-walk prior;
+* optional (:class:`SuitChain`): ``eps_a``, the constant misalignment of each suit segment ``a`` on
+  the chain from the root to tracker ``k``'s segment, moving it by ``[dp_a]x R_a eps_a`` (first
+  order; ``dp_a`` the bone from ``a`` towards the tracker, ``R_a`` its measured orientation).
 
 :func:`calibrate_mounts` estimates all of these; :class:`MountCalibration` carries them and maps
 suit poses into the tracker world and tracker poses back onto their segments.
@@ -66,8 +69,9 @@ class MountCalibration:
     ``heading_std_deg`` its 1-sigma (both 0 without sites). With a :class:`SuitChain`:
     ``chain_segments (A,)`` the suit segments whose misalignment was solved,
     ``chain_misalignment_rad (A, 3)`` each one's ``eps`` (rotation vector in the segment's measured
-    frame: ``R_true = R_meas exp(-[eps]x)``) and ``chain_std_deg (A,)`` its 1-sigma (norm); empty
-    without. ``common_offset_std_m``: 1-sigma (m, norm) of the part all trackers' offsets share, seen
+    frame: ``R_true = R_meas exp(-[eps]x)``) and ``chain_std_deg (A,)`` its spread (norm) under the
+    solve's covariance, like ``translation_std_m`` before its inflation: too small where the prior
+    decides; empty without. ``common_offset_std_m``: 1-sigma (m, norm) of the part all trackers' offsets share, seen
     in the world over the take (their mean world position relative to their segments): what the
     actor's root is known to. An actor who turns no segment cannot tell it from the suit's drift, so
     it rests on the sites' prior (about ``site_prior_m * sqrt(3 / K)``). ``outliers (T, K)``: valid samples
@@ -313,7 +317,8 @@ class _Design:
         return math.sqrt(max(float(np.trace(A @ cov @ A.T)), 0.0))
 
     def chain_std_deg(self, cov) -> np.ndarray:
-        """1-sigma (deg, sqrt of the covariance trace) of each chain segment's misalignment (white)."""
+        """Spread (deg, sqrt of the covariance trace) of each chain segment's misalignment under the
+        solve's covariance (per-sample units: too small where the prior decides)."""
         o = 3 * self.K
         return np.array([math.degrees(math.sqrt(max(float(np.trace(cov[o + 3 * i: o + 3 * i + 3, o + 3 * i: o + 3 * i + 3])), 0.0)))
                          for i in range(len(self.segments))])  # fmt: skip
@@ -556,6 +561,11 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     well-turning actor is decided by its data and a still one by its constellation. The offset's
     1-sigma (from the parabola's curvature) is ``heading_std_deg``, added in quadrature to every
     ``rotation_std_deg``.
+
+    ``chain`` (:class:`SuitChain`, optional): the suit's segments from its root to each tracker's;
+    each one's constant misalignment ``eps`` (prior ``N(0, chain.prior_deg^2)`` per axis) is solved
+    with the mounts and the drift, so that a limb the suit places with misaligned orientations
+    does not end up in the offsets (the ``chain_*`` fields of the result).
 
     Returns a :class:`MountCalibration`. A tracker with fewer than 10 usable samples gets NaN
     entries and ``calibrated[k] = False``. Raises ``ValueError`` on malformed input (shapes, NaN
