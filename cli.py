@@ -740,10 +740,13 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 @click.option("--no-collision", is_flag=True, help="Fit without the SDF collision term (to see what it removes).")
 @click.option("--relaxed-hands", is_flag=True,
               help="Keep anny's relaxed fingers: do not let the collision term open the hands (thumb and fingers).")
+@click.option("--exact-contacts", is_flag=True,
+              help="Locate the collision contacts at every L-BFGS evaluation instead of holding them through each pass "
+                   "(the fallback the default uses where held contacts stall; slower, for comparison).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
 @click.option("--device", default="cpu", show_default=True, help="torch device for the fit, e.g. cuda.")
 def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool, no_collision: bool,
-        relaxed_hands: bool, window: int, device: str):  # fmt: skip
+        relaxed_hands: bool, exact_contacts: bool, window: int, device: str):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
@@ -760,7 +763,8 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
     from dualhuman_builder.fit.stages import run_fit
     from dualhuman_builder.workspace import Workspace
 
-    cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, window=window, device=device)
+    cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, collision_hold_contacts=not exact_contacts,
+                    window=window, device=device)  # fmt: skip
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
                       suit_chain=not no_suit_chain)  # fmt: skip

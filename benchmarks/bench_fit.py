@@ -5,12 +5,15 @@ and peak memory as the take grows.
     .venv/bin/python benchmarks/bench_fit.py --minutes 10         # peak memory stays bounded?
     .venv/bin/python benchmarks/bench_fit.py --device cuda        # on a GPU
     .venv/bin/python benchmarks/bench_fit.py --minutes 10 --collision off --runs 1   # memory, quickly
+    .venv/bin/python benchmarks/bench_fit.py --collision held     # the product's collision passes only
 
 Inputs are the ground-truth segments of a generated hug (the scene type with the most contact),
 looped to the requested length, with six trackers per actor at their segment origins: the fitter
 does the same work as on a recorded take (sync and fuse excluded; they run at >100x real time).
-Prints: fit frame pairs/s with and without the collision term (median of --runs), anny
-forward+backward bodies/s at batch 2 x window, the ratio, and the process's peak RSS.
+Prints: fit frame pairs/s without the collision term, with it (contacts held through each pass,
+the default: ``FitConfig.collision_hold_contacts``), and with it located at every evaluation
+(``exact``, the baseline), median of --runs each, in this process; the held/exact ratio; anny
+forward+backward bodies/s at batch 2 x window, the fit/anny ratios, and the process's peak RSS.
 """
 
 from __future__ import annotations
@@ -67,8 +70,9 @@ def main():
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--collision", choices=("both", "on", "off"), default="both",
-                    help="fit with the collision term, without, or both (default)")
+    ap.add_argument("--collision", choices=("all", "held", "exact", "off"), default="all",
+                    help="fit without the collision term (off), with it and the contacts held through each pass "
+                         "(held, the default fit), with them located at every evaluation (exact), or all three (default)")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import FitConfig, fit_actors
@@ -78,19 +82,26 @@ def main():
     T = len(inp[0].seg_rot)
     print(f"take: {args.minutes:g} min at {args.fps:g} fps = {T} frame pairs; device {args.device}; torch threads {torch.get_num_threads()}")
     medians = {}
-    for collision in {"both": (False, True), "on": (True,), "off": (False,)}[args.collision]:
+    modes = {"all": ("off", "held", "exact")}.get(args.collision, (args.collision,))
+    names = {"off": "without collision term", "held": "with collision term, contacts held",
+             "exact": "with collision term, contacts located at every evaluation"}
+    for mode in modes:
+        cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device)
         rates = []
         for _ in range(args.runs):
-            res = fit_actors(model, inp, args.fps, FitConfig(collision=collision, device=args.device))
+            res = fit_actors(model, inp, args.fps, cfg)
             rates.append(res.summary["frame_pairs_per_s"])
-        medians[collision] = statistics.median(rates)
-        extra = f", frames in collision {res.summary['collision_frames']}" if collision else ""
-        print(f"fit {'with' if collision else 'without'} collision term: {statistics.median(rates):.1f} frame pairs/s (median of {args.runs}{extra})")
+        medians[mode] = statistics.median(rates)
+        s = res.summary
+        extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
+                 f"windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
+        print(f"fit {names[mode]}: {medians[mode]:.1f} frame pairs/s (median of {args.runs}{extra})", flush=True)
+    if "held" in medians and "exact" in medians:
+        print(f"held / exact: {medians['held'] / medians['exact']:.2f}x")
     cfg = FitConfig()
     rate = anny_rate(model, 2 * cfg.window, args.runs + 2)
     print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
-    ratios = ", ".join(f"{medians[c] / (rate / 2):.3f} {'with' if c else 'without'} collision term" for c in medians)
-    print(f"ratio fit / anny raw: {ratios}")
+    print("ratio fit / anny raw: " + ", ".join(f"{medians[m] / (rate / 2):.3f} {m}" for m in medians))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
 

@@ -21,7 +21,7 @@ def test_help_reads_like_a_manual():
     r = run("status", "--help")
     assert "--verify" in r.output and "Read-only" in r.output
     r = run("fit", "--help")
-    assert r.exit_code == 0 and "--relaxed-hands" in r.output and "--no-collision" in r.output
+    assert r.exit_code == 0 and "--relaxed-hands" in r.output and "--no-collision" in r.output and "--exact-contacts" in r.output
 
 
 def test_workspace_commands(tmp_path):

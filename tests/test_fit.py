@@ -3,6 +3,8 @@ loopback transports (simulated devices -> UDP/pty/virtual CAN -> MCAP -> sync ->
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import roma
@@ -213,16 +215,16 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
     assert np.degrees((expected.inv() * got).magnitude()).max() < 1e-4 and np.degrees(np.linalg.norm(eps)) > 0.05
 
 
-def _overlapping_pair(T: int) -> list:
-    """Fit inputs of two actors in the rest pose for ``T`` frames, pelvises 5 cm apart (the bodies
-    overlap, so the collision pass runs), no trackers."""
+def _overlapping_pair(T: int, dx: float = 0.05) -> list:
+    """Fit inputs of two actors in the rest pose for ``T`` frames, pelvises ``dx`` metres apart
+    along x (5 cm: the bodies overlap, so the collision pass runs), no trackers."""
     from dualhuman_builder.fit.fitter import ActorInput
 
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
     pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
     return [ActorInput(name, {}, quat, pelvis + [dx, 0, 0], np.ones(T, bool), np.zeros((T, 0, 3)), np.zeros((T, 0), bool),
                        np.zeros(0, np.int64), np.zeros((0, 3)), np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
-            for name, dx in (("a", 0.0), ("b", 0.05))]  # fmt: skip
+            for name, dx in (("a", 0.0), ("b", dx))]  # fmt: skip
 
 
 @pytest.mark.parametrize("hands", [True, False])
@@ -234,7 +236,8 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch, hands):
 
     T = 4
     inputs = _overlapping_pair(T)
-    cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=hands)
+    cfg = FitConfig(window=T, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=hands,
+                    collision_hold_contacts=False)  # the contacts located at every evaluation (__call__)
     healthy = fit_actors(model, inputs, 15.0, cfg)
     assert healthy.summary["collision_frames"] == T and healthy.summary["collision_diverged"] == []
     real_call = collision.CollisionTerm.__call__
@@ -265,7 +268,8 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     T = 2
     inputs = _overlapping_pair(T)
     # the rounds only (the hands' pass, which comes first, is undone by the same rule)
-    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=False)
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=False,
+                    collision_hold_contacts=False)  # fmt: skip
     real = collision.CollisionTerm.penetration
     calls, seen = [], []
 
@@ -307,7 +311,7 @@ def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes
 
     T = 2
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=4, hand_opening=False,
-                    collision_share_tolerance=share_tolerance)  # fmt: skip
+                    collision_share_tolerance=share_tolerance, collision_hold_contacts=False)  # fmt: skip
     real = collision.CollisionTerm.penetration
     calls = []
 
@@ -322,6 +326,53 @@ def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes
     monkeypatch.setattr(collision.CollisionTerm, "penetration", shallow_but_wide)
     s = fit_actors(model, _overlapping_pair(T), 15.0, cfg).summary
     assert s["collision_rounds_used"] == rounds and s["collision_worsened"] == []
+
+
+def test_held_contacts_settle_a_window_and_a_stalled_one_is_fitted_again_exactly(model, monkeypatch):
+    """By default each collision pass locates the contacts once and holds them (``linear_loss``), and
+    the contacts are never located at every evaluation where the held rounds settle the window. A
+    window whose held rounds stall (here the held term is made to push nothing, so round 1 leaves the
+    overlap as it found it) or end unsettled is fitted again from its skeleton pass with the contacts
+    located at every evaluation: the same bodies as a fit that never holds them, and both the window
+    and the stalled round are listed. (Bodies on one spot, as in the tests above, stall the held
+    rounds without help: half their vertices inside, the closest faces all change as they part.)"""
+    from dualhuman_builder.fit import collision
+
+    T = 2
+    inputs = _overlapping_pair(T, dx=0.17)  # arms through the partner, 37 mm deep
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=6, hand_opening=False)
+    calls = {"held": 0, "exact": 0}
+    real_call, real_linear = collision.CollisionTerm.__call__, collision.CollisionTerm.linear_loss
+
+    def count(kind, fn):
+        def wrapped(*a, **k):
+            calls[kind] += 1
+            return fn(*a, **k)
+
+        return wrapped
+
+    monkeypatch.setattr(collision.CollisionTerm, "__call__", count("exact", real_call))
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", count("held", real_linear))
+    held = fit_actors(model, inputs, 15.0, cfg)
+    s = held.summary
+    assert calls["held"] > 0 and calls["exact"] == 0
+    assert s["collision_exact_windows"] == [] and s["collision_held_stalled"] == []
+    assert s["max_penetration_before_mm"] > 20 and s["max_penetration_after_mm"] <= 1000 * cfg.collision_tolerance_m
+
+    def pushes_nothing(self, lin, points, device=None, dtype=torch.float32):
+        return real_linear(self, lin, points, device, dtype) * 0.0
+
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", count("held", pushes_nothing))
+    calls.update(held=0, exact=0)
+    stalled = fit_actors(model, inputs, 15.0, cfg)
+    assert calls["held"] > 0 and calls["exact"] > 0 and stalled.summary["collision_exact_windows"] == ["frames 0-1"]
+    assert stalled.summary["collision_held_stalled"] == ["frames 0-1, collision round 1, held contacts"]
+    exact = fit_actors(model, inputs, 15.0, dataclasses.replace(cfg, collision_hold_contacts=False))
+    assert exact.summary["collision_exact_windows"] == [] and exact.summary["collision_held_stalled"] == []
+    for a, b in zip(stalled.sequence.actors, exact.sequence.actors):
+        np.testing.assert_allclose(a.transl, b.transl, atol=1e-6)
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-5)
+    assert stalled.summary["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
 
 
 def test_stuck_frames_restart_from_their_neighbours():

@@ -95,6 +95,11 @@ Reuse across calls (``keys``)
     Stale entries are only less useful, never wrong; ``max_memo`` bounds them (oldest dropped),
     ``clear_memo()`` frees them.
 
+Held contacts (:meth:`CollisionTerm.linearise`, :meth:`CollisionTerm.linear_loss`)
+    Locate the contacts once (plus the vertices outside within a margin) and evaluate the term many
+    times on their positions only, each depth ``(c - p) . m`` against the plane held at its closest
+    point: see :class:`Linearised`. The fitter's passes use it; the exact call above is its fallback.
+
 Method ``"igl"``: ``igl.signed_distance`` (pseudonormal) on the candidates with
     ``lower_bound=-inf, upper_bound=band_m``: exact, but libigl rebuilds its AABB tree per call.
 
@@ -226,6 +231,55 @@ class _Contacts:
     depth: np.ndarray
     face: np.ndarray
     bary: np.ndarray
+
+
+@dataclass
+class Linearised:
+    """The collision term located once, for many evaluations (:meth:`CollisionTerm.linearise`).
+
+    An optimiser's line search evaluates the term a dozen times on bodies that move by
+    millimetres. Locating the contacts is most of the cost (the full meshes skinned, the closest
+    points queried); so it is done once, and each evaluation (:meth:`CollisionTerm.linear_loss`)
+    re-reads only the contacts' positions: for each vertex ``p`` inside the other body or
+    outside within the margin, ``depth = (c - p) . m`` with ``c = sum_k w_k x_k`` on the same
+    triangle (barycentric weights held) and ``m`` the obstacle's outward normal there, held --
+    the first-order (point-to-plane) expansion of the signed depth around where it was located,
+    exact in value and gradient at that point. Vertices that cross in from farther than the
+    margin are missed until the next :meth:`~CollisionTerm.linearise`, which the caller runs
+    after each optimiser step.
+
+    ``contacts``: the located vertices (``depth`` metres, negative outside); ``normals (M, 3)``
+    float64 ``m``; ``guard (n,)`` int64 frames where the coincidence guard is on; ``B``, ``V``
+    the batch; ``max_depth_m``, ``share``, ``penetrating``, ``active`` ``(B,)`` numpy: the
+    diagnostics of :meth:`CollisionTerm.penetration` at the located bodies.
+    """
+
+    contacts: _Contacts
+    normals: np.ndarray
+    guard: torch.Tensor
+    B: int
+    V: int
+    max_depth_m: np.ndarray
+    share: np.ndarray
+    penetrating: np.ndarray
+    active: np.ndarray
+
+    def subset(self, frames) -> "Linearised":
+        """The same contacts restricted to the batch rows ``frames`` (distinct ints), renumbered
+        ``0..len(frames)-1`` in that order."""
+        frames = np.asarray(frames, np.int64).ravel()
+        if len(np.unique(frames)) != len(frames) or (len(frames) and (frames.min() < 0 or frames.max() >= self.B)):
+            raise ValueError(f"frames must be distinct rows of the batch of {self.B}")
+        row = np.full(self.B, -1, np.int64)
+        row[frames] = np.arange(len(frames))
+        c = self.contacts
+        keep = row[c.frame] >= 0
+        sub = _Contacts(frame=row[c.frame[keep]], side=c.side[keep], vert=c.vert[keep], depth=c.depth[keep],
+                        face=c.face[keep], bary=c.bary[keep])  # fmt: skip
+        g = torch.as_tensor(row, device=self.guard.device)[self.guard]
+        return Linearised(contacts=sub, normals=self.normals[keep], guard=g[g >= 0], B=len(frames), V=self.V,
+                          max_depth_m=self.max_depth_m[frames], share=self.share[frames],
+                          penetrating=self.penetrating[frames], active=self.active[frames])  # fmt: skip
 
 
 class CollisionTerm:
@@ -423,6 +477,57 @@ class CollisionTerm:
             "depth_b": np.where(db > self.eps, db, 0.0),
         }
 
+    def linearise(self, verts_a, verts_b, keys=None, margin_m: float = 0.005) -> Linearised:
+        """Locate the contacts of ``verts_a``, ``verts_b`` ``(B, V, 3)`` (tensors, metres; no
+        gradient is taken) once, for :meth:`linear_loss`: every vertex of either body inside the
+        other or outside within ``margin_m`` (0 < margin_m <= min(band_m, pad_m)) of it. ``keys``
+        as for :meth:`__call__`. Exact methods only (``"warp"``, ``"igl"``). See :class:`Linearised`."""
+        if self.method == "grid":
+            raise ValueError("linearise needs an exact method ('warp' or 'igl'); the grid has no closest points")
+        if not (np.isfinite(margin_m) and 0 < margin_m <= min(self.band, self.pad)):
+            raise ValueError(f"margin_m must be in (0, min(band_m, pad_m)] = (0, {min(self.band, self.pad)}] m, got {margin_m!r}")
+        va, vb = self._check(verts_a, verts_b, need_tensor=True)
+        va, vb = va.detach(), vb.detach()
+        B, V = va.shape[:2]
+        keys = self._check_keys(keys, B)
+        with self._lock, torch.no_grad():
+            self.last_stats = {}
+            active = self._broad_phase(va, vb)
+            frames = np.flatnonzero(active.cpu().numpy())
+            if len(frames):
+                c = self._contacts(va, vb, frames, keys, margin=float(margin_m))
+            else:
+                z = np.zeros(0, np.int64)
+                c = _Contacts(frame=z, side=z, vert=z, depth=np.zeros(0), face=z, bary=np.zeros((0, 3)))
+            guard = self._guard_frames(va, vb, active)
+        # the outward normal at each contact: along c - p inside, p - c outside (the face's own where
+        # p lies on the surface)
+        A, Bv = va.cpu().numpy().astype(np.float64), vb.cpu().numpy().astype(np.float64)
+        q = np.where((c.side == 0)[:, None], Bv[c.frame, c.vert], A[c.frame, c.vert])
+        obst = np.where((c.side == 0)[:, None, None], A[c.frame[:, None], self.obstacle_faces[c.face]],
+                        Bv[c.frame[:, None], self.obstacle_faces[c.face]])  # fmt: skip
+        diff = (np.asarray(c.bary, np.float64)[:, :, None] * obst).sum(axis=1) - q
+        dist = np.linalg.norm(diff, axis=1, keepdims=True)
+        fn = np.cross(obst[:, 1] - obst[:, 0], obst[:, 2] - obst[:, 0])
+        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)
+        inside = (np.asarray(c.depth) > 0)[:, None]
+        normals = np.where(dist > 1e-9, np.where(inside, diff, -diff) / np.maximum(dist, 1e-20), fn)
+        pen = np.asarray(c.depth) > self.eps
+        max_depth = np.zeros(B)
+        np.maximum.at(max_depth, c.frame[pen], np.asarray(c.depth, np.float64)[pen])
+        count = np.bincount(c.frame[pen], minlength=B).astype(np.int64)
+        return Linearised(contacts=c, normals=normals, guard=guard, B=B, V=V, max_depth_m=max_depth,
+                          share=count / (2.0 * V), penetrating=count, active=active.cpu().numpy())  # fmt: skip
+
+    def linear_loss(self, lin: Linearised, points, device=None, dtype=torch.float32) -> torch.Tensor:
+        """The loss ``(B,)`` of :meth:`__call__` with the contacts of ``lin`` held (see
+        :class:`Linearised`): ``sum rho(relu((c - p) . m)) / (2 V)`` plus the coincidence guard on
+        ``lin.guard``; ``points(body, frames, vertices) -> (M, 3)`` as for :meth:`__call__`, on
+        ``device`` (default: the CPU)."""
+        dev = torch.device("cpu") if device is None else torch.device(device)
+        loss = self._assemble(lin.contacts, lin.B, lin.V, dev, dtype, points, normals=lin.normals)
+        return loss + self._guard_loss(lin.guard, lin.B, lin.V, dev, dtype, points)
+
     def clear_memo(self) -> None:
         """Forget the signs kept for ``keys`` (see the module docstring)."""
         with self._lock:
@@ -559,8 +664,11 @@ class CollisionTerm:
         return sd.numpy().copy(), face.numpy().copy(), bary.numpy().copy()
 
     # ------------------------------------------------------------------------------------ exact contacts
-    def _contacts(self, va: torch.Tensor, vb: torch.Tensor, frames: np.ndarray, keys: list | None = None) -> _Contacts:
-        """Penetrating vertices of both bodies in the active ``frames`` (exact methods)."""
+    def _contacts(self, va: torch.Tensor, vb: torch.Tensor, frames: np.ndarray, keys: list | None = None,
+                  margin: float = 0.0) -> _Contacts:  # fmt: skip
+        """Penetrating vertices of both bodies in the active ``frames`` (exact methods); with
+        ``margin > 0`` (metres, at most ``band_m``) also those outside within ``margin`` of the
+        other surface (their ``depth`` is negative: minus the distance)."""
         A = va[torch.as_tensor(frames, device=va.device)].detach().cpu().numpy().astype(np.float32)
         Bv = vb[torch.as_tensor(frames, device=vb.device)].detach().cpu().numpy().astype(np.float32)
         K, V = A.shape[:2]
@@ -584,11 +692,11 @@ class CollisionTerm:
         cand = (dbox <= self.pad) & self._surface_mask
         self.last_stats = {"candidates": int(cand.sum())}
         if self.method == "igl":
-            prob, vert, depth, face, bary = self._igl_contacts(Q, O, cand)
+            prob, vert, depth, face, bary = self._igl_contacts(Q, O, cand, margin)
         else:
             fkeys = None if keys is None or self.max_memo == 0 else [keys[f] for f in frames]
             prior = self._prior(fkeys, A, Bv) if fkeys is not None else None
-            prob, vert, depth, face, bary, sgn, lb = self._warp_contacts(Q, O, cand, dbox, lo, hi, prior)
+            prob, vert, depth, face, bary, sgn, lb = self._warp_contacts(Q, O, cand, dbox, lo, hi, prior, margin)
             if fkeys is not None:
                 self._remember(fkeys, A, Bv, sgn, lb)
         return _Contacts(frame=frames[prob // 2], side=prob % 2, vert=vert, depth=depth, face=face, bary=bary)
@@ -627,10 +735,10 @@ class CollisionTerm:
         while len(self._memo) > self.max_memo:
             self._memo.pop(next(iter(self._memo)))
 
-    def _warp_contacts(self, Q, O, cand, dbox, lo, hi, prior=None):
-        """Penetrating vertices of the problems ``Q (P, V, 3)`` against ``O``, and per query vertex
-        the sign ``(P, V)`` int8 and a lower bound ``(P, V)`` of the distance's magnitude.
-        ``prior``: signs known to hold (:meth:`_prior`) or None."""
+    def _warp_contacts(self, Q, O, cand, dbox, lo, hi, prior=None, margin: float = 0.0):
+        """Penetrating vertices of the problems ``Q (P, V, 3)`` against ``O`` (and those outside
+        within ``margin``), and per query vertex the sign ``(P, V)`` int8 and a lower bound
+        ``(P, V)`` of the distance's magnitude. ``prior``: signs known to hold (:meth:`_prior`) or None."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
 
@@ -645,7 +753,8 @@ class CollisionTerm:
             pknown = psgn != 0
             sgn = np.where(pknown, psgn, np.int8(1))
             lb = np.where(pknown, np.maximum(lb, plb), lb)
-            query = query & (psgn <= 0)  # known to be still outside: nothing to compute
+            # known to be still outside (farther than the margin): nothing to compute
+            query = query & ((psgn <= 0) | (plb < margin))
         else:
             pknown = np.zeros(N, bool)
             sgn = np.ones(N, np.int8)
@@ -726,11 +835,11 @@ class CollisionTerm:
                            "reused": int((pknown & cand.ravel()).sum())}  # fmt: skip
         idx, sd_all = np.concatenate(res_idx), np.concatenate(res_sd)
         face_all, bary_all = np.concatenate(res_face), np.concatenate(res_bary)
-        ins = (face_all >= 0) & (sd_all < 0)
+        ins = (face_all >= 0) & (sd_all < margin)
         idx = idx[ins]
         return idx // V, idx % V, -sd_all[ins], face_all[ins], bary_all[ins], sgn.reshape(P, V), lb.reshape(P, V)
 
-    def _igl_contacts(self, Q, O, cand):
+    def _igl_contacts(self, Q, O, cand, margin: float = 0.0):
         import igl
 
         P, V = Q.shape[:2]
@@ -743,7 +852,7 @@ class CollisionTerm:
             Ov = O[p].astype(np.float64)
             S, fi, C, _ = igl.signed_distance(Q[p, vi].astype(np.float64), Ov, F,
                                                igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL, -np.inf, self.band)  # fmt: skip
-            ins = np.isfinite(S) & (S < 0)
+            ins = np.isfinite(S) & (S < margin)
             if not ins.any():
                 continue
             fi, C = fi[ins], C[ins]
@@ -758,9 +867,11 @@ class CollisionTerm:
         return tuple(np.concatenate(x) for x in out)
 
     # ------------------------------------------------------------------------------------ torch side
-    def _assemble(self, c: _Contacts, B: int, V: int, dev, dtype, points) -> torch.Tensor:
+    def _assemble(self, c: _Contacts, B: int, V: int, dev, dtype, points, normals=None) -> torch.Tensor:
         """Differentiable ``sum rho(depth) / (2V)`` per frame ``(B,)`` from the contacts; positions
-        from ``points`` (see :meth:`__call__`), each (body, frame, vertex) read once."""
+        from ``points`` (see :meth:`__call__`), each (body, frame, vertex) read once. ``normals
+        (M, 3)``: the obstacle's outward normal at each contact, held (a :class:`Linearised`
+        term); None: from the positions, ``(c - p) / |c - p|`` (the exact distance's gradient)."""
         out = torch.zeros(B, device=dev, dtype=dtype)
         M = len(c.frame)
         if M == 0:
@@ -788,11 +899,14 @@ class CollisionTerm:
         w = torch.as_tensor(c.bary, device=dev, dtype=dtype)
         closest = (w[:, :, None] * x).sum(dim=1)
         diff = closest - p
-        with torch.no_grad():
-            dist = diff.norm(dim=1, keepdim=True)
-            fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
-            fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
-            n = torch.where(dist > 1e-9, diff / dist.clamp_min(1e-20), fn)
+        if normals is None:
+            with torch.no_grad():
+                dist = diff.norm(dim=1, keepdim=True)
+                fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
+                fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
+                n = torch.where(dist > 1e-9, diff / dist.clamp_min(1e-20), fn)
+        else:
+            n = torch.as_tensor(normals, device=dev, dtype=dtype)
         depth = (diff * n).sum(dim=1).clamp_min(0.0)
         out = out.index_add(0, torch.as_tensor(c.frame, device=dev), self.rho(depth))
         return out / (2 * V)
@@ -812,9 +926,14 @@ class CollisionTerm:
         ``va``, ``vb`` (detached) pick the frames where it is on, ``points`` gives their centroids
         with the gradient."""
         B, V = va.shape[:2]
-        out = torch.zeros(B, device=va.device, dtype=va.dtype)
+        return self._guard_loss(self._guard_frames(va, vb, active), B, V, va.device, va.dtype, points)
+
+    def _guard_frames(self, va: torch.Tensor, vb: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """Frames ``(n,)`` (int64) of the batch where the coincidence guard is on: active, and the
+        guard vertices' centroids closer than ``guard_m``."""
+        V = va.shape[1]
         if self.guard_weight == 0:
-            return out
+            return torch.zeros(0, dtype=torch.int64, device=va.device)
         if self._guard_idx is None:
             sel = slice(None)
         elif self.guard_vertices[-1] >= V:  # sorted: the last is the largest
@@ -822,10 +941,14 @@ class CollisionTerm:
         else:
             sel = self._guard_idx.to(va.device)
         on = active & ((vb[:, sel].mean(dim=1) - va[:, sel].mean(dim=1)).norm(dim=1) < self.guard_m)
-        frames = torch.nonzero(on).flatten()
+        return torch.nonzero(on).flatten()
+
+    def _guard_loss(self, frames: torch.Tensor, B: int, V: int, dev, dtype, points) -> torch.Tensor:
+        out = torch.zeros(B, device=dev, dtype=dtype)
         if not len(frames):  # relu(1 - |dc| / guard_m) and its gradient are 0 everywhere else
             return out
-        gv = torch.arange(V, device=va.device) if self._guard_idx is None else sel
+        frames = frames.to(dev)
+        gv = torch.arange(V, device=dev) if self._guard_idx is None else self._guard_idx.to(dev)
         G = len(gv)
         f = frames.repeat_interleave(G)
         v = gv.repeat(len(frames))

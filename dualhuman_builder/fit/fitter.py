@@ -32,7 +32,18 @@ contacts; the few thousand (frame, vertex) pairs the loss reads are skinned agai
 :meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`). Frames far apart pay nothing. The collision term is
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
 one where the bodies moved too little to change them (the same answer wherever the pseudonormal sign
-is well defined; see :mod:`~dualhuman_builder.fit.collision`). A collision pass whose line search steps
+is well defined; see :mod:`~dualhuman_builder.fit.collision`). By default
+(``FitConfig.collision_hold_contacts``) a pass does not locate the contacts at every evaluation: the
+check after the previous pass located them (:meth:`~dualhuman_builder.fit.collision.CollisionTerm.linearise`,
+every vertex inside the other body or outside within ``collision_margin_m``), and the pass holds
+them, each evaluation re-reading only their positions (point-to-plane, exact in value and gradient
+where located; ~25 ms an evaluation of ~45 frames instead of ~150). Held planes stall where the
+closest faces change as the bodies move -- a limb deep through the partner, interlocked fingers:
+a full round that leaves the window's deepest frame deeper than 75 % of where it started (and
+over the tolerance) ends the held rounds, and a window they leave unsettled is fitted again from
+its skeleton pass with the contacts located at every evaluation, so it gets the same answer as
+without holding them (``collision_held_stalled``, ``collision_exact_windows`` in the summary; on the
+twelve recorded takes of the accuracy benchmark: the dance turns' and one high five's windows). A collision pass whose line search steps
 to non-finite corrections is undone and listed in the summary (``collision_diverged``); so is one
 that leaves the window's deepest frame deeper than the best pass before it (``collision_worsened``):
 the next round starts again from the best answer, so the rounds never leave a window deeper than
@@ -99,6 +110,15 @@ class FitConfig:
     #: once per window, frames that a full round left deeper than the tolerance and barely moved
     #: (less than 20 %) start the next round from their neighbours' answer
     collision_restart: bool = True
+    #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
+    #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
+    #: contacts' positions only); a window whose held rounds do not settle is fitted again from its
+    #: skeleton pass with the contacts located at every evaluation. False: always the latter (the same
+    #: answers on windows the held rounds settle, ~2x slower on the fit benchmark's hug)
+    collision_hold_contacts: bool = True
+    #: vertices outside the other body within this distance (m) are held with the contacts, so the
+    #: held term sees them cross in
+    collision_margin_m: float = 0.005
     sigma_orientation_deg: float = 2.0
     sigma_tracker_m: float = 0.004
     #: joint acceleration, m/s^2 (scaled to a per-frame second difference by fps)
@@ -309,6 +329,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     rounds_used = 0
     diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
     worsened: list[str] = []  # collision passes that left the deepest frame deeper than the best (undone)
+    exact_windows: list[str] = []  # windows the held contacts did not settle, fitted again exactly
+    stalled_rounds: list[str] = []  # held rounds that stalled (undone and run again exactly)
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
@@ -357,93 +379,128 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
 
         opt.step(closure)
         if collide is not None:
-            with torch.no_grad():
-                verts = [p.vertices for p in pose_all(slice(None))]
-                pen = collide.penetration(verts[0], verts[1], keys=range(s0, s1))
+
+            def check():
+                """The window's depths now (``penetration``'s dict) and, when contacts are held, them
+                located (a :class:`Linearised` the next held pass starts from; else None)."""
+                with torch.no_grad():
+                    vs = [p.vertices for p in pose_all(slice(None))]
+                    if not cfg.collision_hold_contacts:
+                        return collide.penetration(vs[0], vs[1], keys=range(s0, s1)), None
+                    lin = collide.linearise(vs[0], vs[1], keys=range(s0, s1), margin_m=cfg.collision_margin_m)
+                    return {"max_depth_m": lin.max_depth_m, "share": lin.share}, lin
+
+            pen, located = check()
             pen_before[sl] = pen["max_depth_m"]
             pen_share_before[sl] = pen["share"]
             hit = np.flatnonzero(pen["max_depth_m"] > 0)
             collided_frames += len(hit)
-            weight = cfg.collision_weight
-            # the deepest frame's depth after the best round so far (before any: the skeleton pass's), that
-            # round's corrections and its per-frame depths (W,)
-            best = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
-
+            # (the deepest frame's depth, the corrections, the per-frame depths (W,)) after the skeleton pass;
+            # `best` below: the same after the best round so far
+            start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
             # the hands first: their openings have no data term, so they give way before any bone the
             # suit and trackers hold, and the full rounds start from hands that already fit
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
-            restarted = False
-            for i_pass, what in enumerate(passes if len(hit) else []):
-                n_round = i_pass + (0 if hands else 1)  # the full rounds count from 1 (the hands' pass: 0)
-                hit_t = torch.as_tensor(hit, device=dev)
-                start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
-                free = hands if what == "hands" else bones + hands
-                copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
-                label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
+            # held contacts first (cheap evaluations); a window they do not settle is fitted again from its
+            # skeleton pass with the contacts located at every evaluation
+            modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
+            for mode in modes if len(hit) else []:
+                best, weight, restarted, settled = start, cfg.collision_weight, False, False
+                hit = np.flatnonzero(start[2] > 0)
+                if mode == "exact" and len(modes) == 2:
+                    _restore(params, start[1])
+                    exact_windows.append(f"frames {s0}-{s1 - 1}")
+                    located = None
+                n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
+                for what in passes:
+                    n_round += what == "all"
+                    hit_t = torch.as_tensor(hit, device=dev)
+                    start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
+                    free = hands if what == "hands" else bones + hands
+                    use_held = mode == "held"
+                    copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+                    label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
+                    label += ", held contacts" if use_held else ""
+                    held = None
+                    if use_held:  # located where the pass starts (by the last check, if the bodies are still there)
+                        if located is None:
+                            _, located = check()
+                        held = located.subset(hit)
 
-                def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt):
+                    def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held):
+                        if not _finite(params):
+                            raise _Diverged
+                        copt.zero_grad()
+                        e, outs = skeleton_energy()
+
+                        # the loss reads a few thousand (frame, vertex) pairs, skinned with the gradient
+                        def at(body, f, v):
+                            return acts[body].rig.skin_at(outs[body][0], hit_t[f], v)
+
+                        if held is not None:
+                            c = collide.linear_loss(held, at, device=dev).sum()
+                        else:  # the full meshes, without gradient, locate the contacts
+                            with torch.no_grad():
+                                vs = [p.vertices for p in pose_all(hit_t)]
+                            c = collide(vs[0], vs[1], keys=s0 + hit, points=at).loss.sum()
+                        e = e + weight * c
+                        e.backward()
+                        return e
+
+                    located = None  # the bodies move
+                    try:
+                        copt.step(cclosure)
+                    except _Diverged:
+                        pass
                     if not _finite(params):
-                        raise _Diverged
-                    copt.zero_grad()
-                    e, outs = skeleton_energy()
-                    # the full meshes, without gradient, only locate the contacts; the loss reads a few
-                    # thousand (frame, vertex) pairs, skinned again with the gradient (skin_at)
-                    with torch.no_grad():
-                        vs = [p.vertices for p in pose_all(hit_t)]
-
-                    def at(body, f, v):
-                        return acts[body].rig.skin_at(outs[body][0], hit_t[f], v)
-
-                    c = collide(vs[0], vs[1], keys=s0 + hit, points=at).loss.sum()
-                    e = e + weight * c
-                    e.backward()
-                    return e
-
-                try:
-                    copt.step(cclosure)
-                except _Diverged:
-                    pass
-                if not _finite(params):
-                    # the line search stepped to non-finite corrections: keep the best round's answer
-                    _restore(params, best[1])
-                    diverged.append(label)
-                    break
-                # how deep one pass leaves a frame depends on where it started, so frames still deeper than
-                # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
-                # the term: released, it would spring back (the other terms still pull it in) while its
-                # neighbours are refitted. Frames pushed into contact by their neighbours join.
-                with torch.no_grad():
-                    vs = [p.vertices for p in pose_all(slice(None))]
-                    now_pen = collide.penetration(vs[0], vs[1], keys=range(s0, s1))
-                    left = now_pen["max_depth_m"]
-                if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
-                    rounds_used = max(rounds_used, n_round)
-                if left.max() > best[0]:
-                    # deeper than the best round so far (the data pull the bodies into each other harder
-                    # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
-                    # the next round starts again from the best answer, with the term weighted up
-                    _restore(params, best[1])
-                    worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
-                else:
-                    best = (float(left.max()), [p.detach().clone() for p in params], left)
-                    if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
+                        # the line search stepped to non-finite corrections: keep the best round's answer
+                        _restore(params, best[1])
+                        diverged.append(label)
                         break
-                hit = np.union1d(hit, np.flatnonzero(left > 0))
-                if what == "all" and cfg.collision_restart and not restarted and n_round >= 2:
-                    # frames a round could not move (interlocked hands: the two pushes oppose each other)
-                    # start again from their neighbours' answer, where the bodies meet less deeply. The
-                    # window now holds the best answer (kept or restored), and the round started from the
-                    # best before it: compare those two
-                    now = best[2]
-                    deep = now > cfg.collision_tolerance_m
-                    stuck = deep & (now > 0.8 * start_left)
-                    if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
-                        run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
-                        restarted = _restart_from_neighbours(params, deep & np.isin(run, run[stuck]))
-                        if restarted:
-                            say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
-                if what == "all":
-                    weight *= 4.0
+                    # how deep one pass leaves a frame depends on where it started, so frames still deeper than
+                    # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
+                    # the term: released, it would spring back (the other terms still pull it in) while its
+                    # neighbours are refitted. Frames pushed into contact by their neighbours join.
+                    now_pen, located = check()
+                    left = now_pen["max_depth_m"]
+                    if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
+                        rounds_used = max(rounds_used, n_round)
+                    if use_held and what == "all" and left.max() > max(cfg.collision_tolerance_m, 0.75 * start_left.max()):
+                        # held planes that stall (a limb deep through the partner, interlocked fingers: the
+                        # closest faces change as they move): the window goes again, exactly
+                        stalled_rounds.append(label)
+                        break
+                    if left.max() > best[0]:
+                        # deeper than the best round so far (the data pull the bodies into each other harder
+                        # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
+                        # the next round starts again from the best answer, with the term weighted up
+                        _restore(params, best[1])
+                        located = None
+                        worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
+                    else:
+                        best = (float(left.max()), [p.detach().clone() for p in params], left)
+                        if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
+                            settled = True
+                            break
+                    hit = np.union1d(hit, np.flatnonzero(left > 0))
+                    if what == "all" and cfg.collision_restart and not restarted and n_round >= 2:
+                        # frames a round could not move (interlocked hands: the two pushes oppose each other)
+                        # start again from their neighbours' answer, where the bodies meet less deeply. The
+                        # window now holds the best answer (kept or restored), and the round started from the
+                        # best before it: compare those two
+                        now = best[2]
+                        deep = now > cfg.collision_tolerance_m
+                        stuck = deep & (now > 0.8 * start_left)
+                        if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
+                            run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
+                            restarted = _restart_from_neighbours(params, deep & np.isin(run, run[stuck]))
+                            if restarted:
+                                located = None
+                                say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
+                    if what == "all":
+                        weight *= 4.0
+                if settled or mode == "exact":
+                    break
         for k in range(len(acts)):  # overlapping frames take the later window's answer
             for j, t in enumerate((deltas[k], dtransl[k], openings[k])):
                 t[sl] = params[P * k + j].detach()
@@ -488,7 +545,8 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
                "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used),
-               "collision_diverged": diverged, "collision_worsened": worsened}  # fmt: skip
+               "collision_diverged": diverged, "collision_worsened": worsened,
+               "collision_exact_windows": exact_windows, "collision_held_stalled": stalled_rounds}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),
