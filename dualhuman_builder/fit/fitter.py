@@ -43,9 +43,10 @@ a full round that leaves the window's deepest frame deeper than 75 % of where it
 over the tolerance) ends the held rounds, and a window they leave unsettled is fitted again from
 its skeleton pass with the contacts located at every evaluation, so it gets the same answer as
 without holding them (``collision_held_stalled``, ``collision_exact_windows`` in the summary; on the
-twelve recorded takes of the accuracy benchmark: the dance turns' and one high five's windows). A collision pass whose line search steps
-to non-finite corrections is undone and listed in the summary (``collision_diverged``); so is one
-that leaves the window's deepest frame deeper than the best pass before it (``collision_worsened``):
+twelve recorded takes of the accuracy benchmark: the dance turns' and one high five's windows).
+A collision pass whose line search steps to non-finite corrections is undone and listed in the
+summary (``collision_diverged``); so is one that leaves the window's deepest frame deeper than the
+best pass before it (``collision_worsened``):
 the next round starts again from the best answer, so the rounds never leave a window deeper than
 the skeleton pass did. Frames that a full round (from the second on) leaves deeper than the
 tolerance and moves by less than 20 % are stuck — on the simulated dance turns, joined hands
@@ -113,8 +114,9 @@ class FitConfig:
     #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
     #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
     #: contacts' positions only); a window whose held rounds do not settle is fitted again from its
-    #: skeleton pass with the contacts located at every evaluation. False: always the latter (the same
-    #: answers on windows the held rounds settle, ~2x slower on the fit benchmark's hug)
+    #: skeleton pass with the contacts located at every evaluation. False: always the latter (the fit
+    #: benchmark's hug: 1.2x slower; the accuracy benchmark's recorded hugs: 2.2x; no slower where the
+    #: held rounds stall, as on its dance turns)
     collision_hold_contacts: bool = True
     #: vertices outside the other body within this distance (m) are held with the contacts, so the
     #: held term sees them cross in
@@ -330,7 +332,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
     worsened: list[str] = []  # collision passes that left the deepest frame deeper than the best (undone)
     exact_windows: list[str] = []  # windows the held contacts did not settle, fitted again exactly
-    stalled_rounds: list[str] = []  # held rounds that stalled (undone and run again exactly)
+    stalled_rounds: list[str] = []  # held rounds that stalled (their window fitted again exactly)
     W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
     starts = list(range(0, T, max(W - O, 1)))
     for wi, s0 in enumerate(starts):
