@@ -419,9 +419,7 @@ class CollisionTerm:
                 raise ValueError("points= needs an exact method ('warp' or 'igl'); the grid samples every vertex")
             loss = torch.zeros(B, device=dev, dtype=dtype)
         with self._lock:
-            self.last_stats = {}
-            active = self._broad_phase(va.detach(), vb.detach())
-            frames = np.flatnonzero(active.cpu().numpy())
+            active, frames = self._active_frames(va.detach(), vb.detach())
             max_depth = torch.zeros(B, device=dev, dtype=dtype)
             count = torch.zeros(B, device=dev, dtype=torch.int64)
             if len(frames):
@@ -453,9 +451,7 @@ class CollisionTerm:
         B, V = va.shape[:2]
         keys = self._check_keys(keys, B)
         with self._lock, torch.no_grad():
-            self.last_stats = {}
-            active = self._broad_phase(va, vb)
-            frames = np.flatnonzero(active.cpu().numpy())
+            active, frames = self._active_frames(va, vb)
             depth_a = torch.zeros(B, V, dtype=va.dtype, device=va.device)
             depth_b = torch.zeros_like(depth_a)
             if len(frames):
@@ -491,9 +487,7 @@ class CollisionTerm:
         B, V = va.shape[:2]
         keys = self._check_keys(keys, B)
         with self._lock, torch.no_grad():
-            self.last_stats = {}
-            active = self._broad_phase(va, vb)
-            frames = np.flatnonzero(active.cpu().numpy())
+            active, frames = self._active_frames(va, vb)
             if len(frames):
                 c = self._contacts(va, vb, frames, keys, margin=float(margin_m))
             else:
@@ -584,6 +578,12 @@ class CollisionTerm:
         return keys
 
     # ------------------------------------------------------------------------------------ broad phase
+    def _active_frames(self, va: torch.Tensor, vb: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
+        """A new call (``last_stats`` cleared): the broad phase's ``(B,)`` mask and its frames."""
+        self.last_stats = {}
+        active = self._broad_phase(va, vb)
+        return active, np.flatnonzero(active.cpu().numpy())
+
     def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor) -> torch.Tensor:
         """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap."""
         ta, tb = va.transpose(1, 2).contiguous(), vb.transpose(1, 2).contiguous()  # fast reductions
