@@ -11,7 +11,13 @@ trackers or collision term (what fusion buys), and prints one row per take plus 
 recorded in real time (``--speed``), so the figures include real transport timing; two recordings
 of one scene differ through that timing, so ``--keep DIR`` keeps the recordings (``DIR/<type>-<seed>/``)
 and a later run with the same ``DIR`` scores the same ones again (to compare code, not recordings).
+``fit_s`` is the fit stage's own time (sync and fuse excluded), ``exact_windows`` how many windows
+its held contacts did not settle (fitted again exactly, :class:`~dualhuman_builder.fit.fitter.FitConfig`
+``collision_hold_contacts``). ``--compare-exact`` fits each take a third time with the contacts
+located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plus the total ratio.
 Writes ``benchmarks/results/fit_accuracy.json``.
+
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --compare-exact
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetrat
            "mount_offset_error_mm", "foot_slide_mm", "fit_pairs_per_s")  # fmt: skip
 
 
-def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model) -> dict:
+def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False) -> dict:
     from dualhuman_builder.fit.evaluate import evaluate_take_fit, record_simulated_take
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.pipeline import process_take
@@ -53,6 +59,11 @@ def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
     tf = process_take(take, fps=fps, model=model)
     wall = time.perf_counter() - t0
     ev = evaluate_take_fit(tf, scene, seed=seed, model=model)
+    extra = {}
+    if compare_exact:
+        exact = process_take(take, fps=fps, config=FitConfig(collision_hold_contacts=False), model=model)
+        extra = {"fit_s_exact": exact.fit.summary["fit_seconds"],
+                 "mpjpe_exact_mm": evaluate_take_fit(exact, scene, seed=seed, model=model)["mpjpe_mm"]}  # fmt: skip
     free = evaluate_take_fit(process_take(take, fps=fps, use_trackers=False, config=FitConfig(collision=False), model=model),
                              scene, seed=seed, model=model)  # fmt: skip
     return {
@@ -66,6 +77,8 @@ def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
         "mount_offset_error_mm": ev.get("mount_translation_error_mm", float("nan")),
         "foot_slide_mm": ev["foot_slide_mm"], "fit_pairs_per_s": ev["frames"] / wall,
         "collision_rounds_used": tf.fit.summary.get("collision_rounds_used"),
+        "fit_s": tf.fit.summary["fit_seconds"], "exact_windows": float(len(tf.fit.summary.get("collision_exact_windows", []))),
+        **extra,
     }  # fmt: skip
 
 
@@ -80,26 +93,32 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fit_accuracy.json")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the recordings in this folder, and score those already there instead of recording again")
+    ap.add_argument("--compare-exact", action="store_true",
+                    help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
     args = ap.parse_args()
+    cols = COLUMNS + ("fit_s", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model
 
     model = get_body_model()
     rows = []
-    print(f"{'take':<16}" + "".join(f"{c[:14]:>15}" for c in COLUMNS), flush=True)
+    print(f"{'take':<16}" + "".join(f"{c[:14]:>15}" for c in cols), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) if args.keep is None else args.keep
         for t in args.types:
             for s in args.seeds:
-                r = one_take(t, s, args.fps, args.speed, folder, model)
+                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact)
                 rows.append(r)
-                print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in COLUMNS), flush=True)
+                print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in cols), flush=True)
     summary = {}
-    for c in COLUMNS:
+    for c in cols:
         vals = [r[c] for r in rows if r[c] == r[c]]
         summary[c] = {"mean": statistics.fmean(vals), "worst": (min if c == "fit_pairs_per_s" else max)(vals)} if vals else {}
-    print(f"{'mean':<16}" + "".join(f"{summary[c].get('mean', float('nan')):15.3f}" for c in COLUMNS))
-    print(f"{'worst':<16}" + "".join(f"{summary[c].get('worst', float('nan')):15.3f}" for c in COLUMNS))
+    print(f"{'mean':<16}" + "".join(f"{summary[c].get('mean', float('nan')):15.3f}" for c in cols))
+    print(f"{'worst':<16}" + "".join(f"{summary[c].get('worst', float('nan')):15.3f}" for c in cols))
+    if args.compare_exact:
+        held, exact = sum(r["fit_s"] for r in rows), sum(r["fit_s_exact"] for r in rows)
+        print(f"fit seconds over all takes: {held:.1f} held contacts, {exact:.1f} exact: {exact / held:.2f}x")
     print("\ngoals (worst take):")
     for c, bound in GOALS.items():
         worst = summary[c].get("worst", float("nan"))

@@ -460,13 +460,17 @@ class CollisionTerm:
                 else:
                     c = self._contacts(va, vb, frames, keys)
                     depth_a, depth_b = self._depth_maps(c, B, V, va.device, va.dtype)
+        return self._penetration_dict(depth_a, depth_b, active)
+
+    def _penetration_dict(self, depth_a: torch.Tensor, depth_b: torch.Tensor, active: torch.Tensor) -> dict:
+        """:meth:`penetration`'s dict from the depth maps ``(B, V)`` (entries <= ``eps_m`` count as 0)."""
         da = depth_a.double().cpu().numpy()
         db = depth_b.double().cpu().numpy()
         both = np.concatenate([da, db], axis=1)
         pen = both > self.eps
         return {
             "max_depth_m": np.where(pen, both, 0.0).max(axis=1),
-            "share": pen.sum(axis=1) / (2.0 * V),
+            "share": pen.sum(axis=1) / (2.0 * da.shape[1]),
             "penetrating": pen.sum(axis=1).astype(np.int64),
             "active": active.cpu().numpy(),
             "depth_a": np.where(da > self.eps, da, 0.0),
@@ -494,24 +498,17 @@ class CollisionTerm:
                 z = np.zeros(0, np.int64)
                 c = _Contacts(frame=z, side=z, vert=z, depth=np.zeros(0), face=z, bary=np.zeros((0, 3)))
             guard = self._guard_frames(va, vb, active)
-        # the outward normal at each contact: along c - p inside, p - c outside (the face's own where
-        # p lies on the surface)
-        A, Bv = va.cpu().numpy().astype(np.float64), vb.cpu().numpy().astype(np.float64)
-        q = np.where((c.side == 0)[:, None], Bv[c.frame, c.vert], A[c.frame, c.vert])
-        obst = np.where((c.side == 0)[:, None, None], A[c.frame[:, None], self.obstacle_faces[c.face]],
-                        Bv[c.frame[:, None], self.obstacle_faces[c.face]])  # fmt: skip
-        diff = (np.asarray(c.bary, np.float64)[:, :, None] * obst).sum(axis=1) - q
-        dist = np.linalg.norm(diff, axis=1, keepdims=True)
-        fn = np.cross(obst[:, 1] - obst[:, 0], obst[:, 2] - obst[:, 0])
-        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)
-        inside = (np.asarray(c.depth) > 0)[:, None]
-        normals = np.where(dist > 1e-9, np.where(inside, diff, -diff) / np.maximum(dist, 1e-20), fn)
-        pen = np.asarray(c.depth) > self.eps
-        max_depth = np.zeros(B)
-        np.maximum.at(max_depth, c.frame[pen], np.asarray(c.depth, np.float64)[pen])
-        count = np.bincount(c.frame[pen], minlength=B).astype(np.int64)
-        return Linearised(contacts=c, normals=normals, guard=guard, B=B, V=V, max_depth_m=max_depth,
-                          share=count / (2.0 * V), penetrating=count, active=active.cpu().numpy())  # fmt: skip
+            diag = self._penetration_dict(*self._depth_maps(c, B, V, va.device, va.dtype), active)
+        # the outward normal at each contact, as _assemble finds it for a vertex inside
+        f, side = torch.as_tensor(c.frame), torch.as_tensor(c.side)
+        A, Bv = va.cpu().double(), vb.cpu().double()
+        tri = torch.as_tensor(self.obstacle_faces[c.face])
+        q = torch.where((side == 0)[:, None], Bv[f, torch.as_tensor(c.vert)], A[f, torch.as_tensor(c.vert)])
+        x = torch.where((side == 0)[:, None, None], A[f[:, None], tri], Bv[f[:, None], tri])
+        diff = (torch.as_tensor(c.bary, dtype=torch.float64)[:, :, None] * x).sum(dim=1) - q
+        normals = self._outward_normals(diff, x, inside=torch.as_tensor(np.asarray(c.depth) > 0)).numpy()
+        return Linearised(contacts=c, normals=normals, guard=guard, B=B, V=V, max_depth_m=diag["max_depth_m"],
+                          share=diag["share"], penetrating=diag["penetrating"], active=diag["active"])  # fmt: skip
 
     def linear_loss(self, lin: Linearised, points, device=None, dtype=torch.float32) -> torch.Tensor:
         """The loss ``(B,)`` of :meth:`__call__` with the contacts of ``lin`` held (see
@@ -899,17 +896,25 @@ class CollisionTerm:
         w = torch.as_tensor(c.bary, device=dev, dtype=dtype)
         closest = (w[:, :, None] * x).sum(dim=1)
         diff = closest - p
-        if normals is None:
+        if normals is None:  # every contact here is inside
             with torch.no_grad():
-                dist = diff.norm(dim=1, keepdim=True)
-                fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
-                fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
-                n = torch.where(dist > 1e-9, diff / dist.clamp_min(1e-20), fn)
+                n = self._outward_normals(diff, x)
         else:
             n = torch.as_tensor(normals, device=dev, dtype=dtype)
         depth = (diff * n).sum(dim=1).clamp_min(0.0)
         out = out.index_add(0, torch.as_tensor(c.frame, device=dev), self.rho(depth))
         return out / (2 * V)
+
+    @staticmethod
+    def _outward_normals(diff: torch.Tensor, x: torch.Tensor, inside: torch.Tensor | None = None) -> torch.Tensor:
+        """The obstacle's outward normal ``(M, 3)`` at each contact's closest point: along
+        ``diff = c - p`` (``(M, 3)``) for a vertex inside, against it outside (``inside (M,)`` bool;
+        None: all inside), the triangle ``x (M, 3, 3)``'s own normal where ``p`` lies on it."""
+        dist = diff.norm(dim=1, keepdim=True)
+        fn = torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], dim=1)
+        fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-20)
+        d = diff if inside is None else torch.where(inside[:, None], diff, -diff)
+        return torch.where(dist > 1e-9, d / dist.clamp_min(1e-20), fn)
 
     def _depth_maps(self, c: _Contacts, B: int, V: int, dev, dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """``(depth_a (B, V), depth_b (B, V))`` from the contacts, no gradient."""

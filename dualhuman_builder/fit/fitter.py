@@ -37,7 +37,7 @@ is well defined; see :mod:`~dualhuman_builder.fit.collision`). By default
 check after the previous pass located them (:meth:`~dualhuman_builder.fit.collision.CollisionTerm.linearise`,
 every vertex inside the other body or outside within ``collision_margin_m``), and the pass holds
 them, each evaluation re-reading only their positions (point-to-plane, exact in value and gradient
-where located; ~25 ms an evaluation of ~45 frames instead of ~150). Held planes stall where the
+where located; no full-mesh skinning or query per evaluation). Held planes stall where the
 closest faces change as the bodies move -- a limb deep through the partner, interlocked fingers:
 a full round that leaves the window's deepest frame deeper than 75 % of where it started (and
 over the tolerance) ends the held rounds, and a window they leave unsettled is fitted again from
@@ -115,8 +115,8 @@ class FitConfig:
     #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
     #: contacts' positions only); a window whose held rounds do not settle is fitted again from its
     #: skeleton pass with the contacts located at every evaluation. False: always the latter (the fit
-    #: benchmark's hug: 1.2x slower; the accuracy benchmark's recorded hugs: 2.2x; no slower where the
-    #: held rounds stall, as on its dance turns)
+    #: benchmark's hug: 1.2x slower; the accuracy benchmark's twelve takes: 1.25x, its hugs 2.6x, and
+    #: about as fast where the held rounds stall, as on its dance turns: ``--compare-exact``)
     collision_hold_contacts: bool = True
     #: vertices outside the other body within this distance (m) are held with the contacts, so the
     #: held term sees them cross in
