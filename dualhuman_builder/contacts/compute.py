@@ -24,18 +24,18 @@ against the whole closed mesh, and distances within the band equal to its answer
      point), so libigl finds the same closest point with the same pseudonormal sign as on the
      whole mesh;
    * **the others** get the same pseudonormal signed distance in float64 on the face the BVH
-     found (:mod:`dualhuman_builder.contacts.pseudonormal`: closest point, and the sign from the
-     face, edge or vertex pseudonormal as libigl builds them); any that comes out inside (a
-     deep penetration) goes to libigl too. Where two faces tie to float32 precision the BVH may
+     found, in the same warp kernel (the rule of :mod:`dualhuman_builder.contacts.pseudonormal`:
+     closest point, and the sign from the face, edge or vertex pseudonormal as libigl builds
+     them; ``tests/test_pseudonormal.py`` checks the kernel against that module to 1e-12 m); any
+     that comes out inside (a deep penetration) goes to libigl too. Where two faces tie to float32 precision the BVH may
      name either: the distance then differs from libigl's by less than 1e-7 m (the test's bound;
      ``benchmarks/bench_contacts.py`` prints the largest difference), far below the float16 it is
      stored in.
 
    ``igl`` rebuilds its AABB tree and normals on every call (about 1.5 us per face) and spends
    about 5 us per point; the BVH's face walk for a vertex 4 cm away costs about as much, which is
-   why only possible contacts take that path. On a hug's contact frames (2-core CPU,
-   ``benchmarks/bench_contacts.py``): ~85 ms per frame pair when libigl answered every vertex in
-   the band (~2,600 per direction); ~30 ms now, ~480 of them per direction going to libigl.
+   why only possible contacts take that path: on a hug's contact frames ~480 vertices per
+   direction of the ~2,600 in the band.
 3. **Deep penetration.** ``igl`` returns NaN for points farther than the band on either side, so
    a vertex more than ``band_m`` inside the other body would come back NaN. Such vertices are
    found by a flood fill over the query body's edges: from a vertex inside within the band, across
@@ -45,8 +45,8 @@ against the whole closed mesh, and distances within the band equal to its answer
    (anny has a few edges longer than 5 cm, on the thighs and shins; a deep vertex reachable
    only across them stays NaN, i.e. not in contact.)
 
-Frames run in the calling thread, pipelined: a helper thread runs the next frame's BVH queries
-(outside the GIL) while this one finishes the last (:func:`_compute_frames`); or, for long
+Frames run in the calling thread, pipelined: helper threads run the next two frames' narrow
+phases (mostly outside the GIL) while this one runs libigl on the last (:func:`_compute_frames`); or, for long
 sequences on machines with more than two CPUs, in worker processes
 (:mod:`~dualhuman_builder.contacts.workers`): ``igl.signed_distance`` holds the GIL for each whole
 call, so threads cannot share the rest of the work.
@@ -61,6 +61,7 @@ Vertices deeper than the band have no closest face and count towards no pair.
 
 from __future__ import annotations
 
+import collections
 import functools
 import math
 import threading
@@ -73,12 +74,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from dualhuman_builder.contacts.narrow import NearSelector
-from dualhuman_builder.contacts.pseudonormal import MeshAdjacency, signed_distance_to_faces
+from dualhuman_builder.contacts.pseudonormal import MeshAdjacency
 
 DEFAULT_THRESHOLD_M = 0.02
 DEFAULT_BAND_M = 0.05
 DEFAULT_MERGE_GAP = 1
 CONTACT_RESULT_VERSION = 1
+SELECTORS = 3  # narrow-phase selectors per thread: frames in flight (see _compute_frames)
 COUNT_KEYS = ("queried_vertices", "queried_faces", "pseudonormal_vertices", "deep_vertices")
 
 
@@ -154,15 +156,16 @@ _LOCAL = threading.local()
 
 
 def _selectors(topo: ContactTopology) -> tuple[NearSelector, NearSelector]:
-    """This thread's two :class:`NearSelector` for ``topo`` (built on first use: ~10 ms each); two,
-    so that the sequence loop can prepare one frame with one while it finishes the last with the other."""
+    """This thread's :data:`SELECTORS` :class:`NearSelector` for ``topo`` (built on first use: ~10 ms
+    each), so that the sequence loop can prepare the next frames with some while it finishes the
+    last with another."""
     cache = getattr(_LOCAL, "selectors", None)
     if cache is None:
         cache = _LOCAL.selectors = weakref.WeakKeyDictionary()
     sel = cache.get(topo)
     if sel is None:
-        sel = cache[topo] = tuple(NearSelector(topo.faces, topo.reference_vertices, face_groups=topo.face_region)
-                                  for _ in range(2))  # fmt: skip
+        sel = cache[topo] = tuple(NearSelector(topo.faces, topo.reference_vertices, face_groups=topo.face_region,
+                                               adjacency=topo.adjacency) for _ in range(SELECTORS))  # fmt: skip
     return sel
 
 
@@ -256,34 +259,29 @@ class ContactResult:
 
 
 # ============================================================================ one frame
-def _direction(topo: ContactTopology, selector: NearSelector, target: int, P: np.ndarray, Q: np.ndarray, near,
-               band: float, threshold: float, counts: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Signed distances ``(V,)`` of the vertices ``P`` to the surface ``Q`` (BVH ``target`` of
-    ``selector``; NaN farther than ``band``) and each one's closest face ``(V,)`` (index into
-    ``topo.faces``, -1 where the distance is NaN), from ``near = (idx, face, dist)`` of
-    :meth:`NearSelector.closest`: vertices whose float32 distance exceeds ``threshold`` (plus the
-    slack) and that lie outside get their distance from :mod:`.pseudonormal` on that face; the
-    rest (possible contacts) from libigl against the sub-mesh :meth:`NearSelector.faces_for` picks."""
+def _direction(topo: ContactTopology, P: np.ndarray, Q: np.ndarray, near, band: float,
+               counts: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Signed distances ``(V,)`` of the vertices ``P`` to the surface ``Q`` (NaN farther than
+    ``band``) and each one's closest face ``(V,)`` (index into ``topo.faces``, -1 where the
+    distance is NaN), from :meth:`NearSelector.query`'s ``near``: its float64 pseudonormal
+    distances where it has them and they lie outside, libigl against the sub-mesh of
+    ``near.faces`` for the rest (possible contacts)."""
     import igl
 
     V = topo.num_vertices
     d = np.full(V, np.nan)
     face = np.full(V, -1, dtype=np.int64)
-    idx, near_face, dist = near
-    if not len(idx):
+    if not len(near.idx):
         return d, face
-    beyond = np.flatnonzero(dist > threshold + selector.slack)  # no contact unless inside
-    sd = signed_distance_to_faces(P[idx[beyond]], Q, topo.faces, topo.adjacency, near_face[beyond])
-    outside = beyond[sd >= 0]  # NaN (no pseudonormal) compares False: libigl answers it
-    sd = sd[sd >= 0]
-    within = sd <= band  # libigl's banded answer is NaN beyond the band
-    d[idx[outside[within]]] = sd[within]
-    face[idx[outside[within]]] = near_face[outside[within]]
-    counts["pseudonormal_vertices"] += len(outside)
-    exact = np.setdiff1d(np.arange(len(idx)), outside, assume_unique=True)
-    if not len(exact):
+    pseudo = np.ones(len(near.idx), dtype=bool)
+    pseudo[near.exact] = False
+    counts["pseudonormal_vertices"] += int(pseudo.sum())
+    within = pseudo & (near.signed <= band)  # libigl's banded answer is NaN beyond the band
+    d[near.idx[within]] = near.signed[within]
+    face[near.idx[within]] = near.face[within]
+    if not len(near.exact):
         return d, face
-    keep, fidx = idx[exact], selector.faces_for(target, exact)
+    keep, fidx = near.idx[near.exact], near.faces
     sub = topo.faces[fidx]
     used = np.zeros(V, dtype=bool)
     used[sub.ravel()] = True
@@ -407,24 +405,26 @@ def contact_frame(topology: ContactTopology, verts_a: np.ndarray, verts_b: np.nd
     counts = counts if counts is not None else {}
     for k in COUNT_KEYS:
         counts.setdefault(k, 0)
-    near = _prepare(A, B, band_m, _selectors(topology)[0])
-    return None if near is None else _complete(topology, A, B, near, band_m, threshold_m, counts)
+    near = _prepare(A, B, band_m, threshold_m, _selectors(topology)[0])
+    return None if near is None else _complete(topology, A, B, near, band_m, counts)
 
 
-def _prepare(A: np.ndarray, B: np.ndarray, band: float, selector: NearSelector):
-    """The part of a frame that runs outside the GIL: None when the bodies' boxes are farther
-    apart than ``band``, else ``(selector, (near_a, near_b))`` of :meth:`NearSelector.closest_pair`."""
+def _prepare(A: np.ndarray, B: np.ndarray, band: float, threshold: float, selector: NearSelector):
+    """The part of a frame that runs in helper threads, mostly outside the GIL: None when the
+    bodies' boxes are farther apart than ``band``, else :meth:`NearSelector.query_pair`'s
+    ``(near_a, near_b)``."""
     (lo_a, hi_a), (lo_b, hi_b) = _box(A), _box(B)
     if np.any(lo_a > hi_b + band) or np.any(lo_b > hi_a + band):
         return None  # whole bodies (all vertices) farther apart than the band
-    return selector, selector.closest_pair(A, B, band)
+    return selector.query_pair(A, B, band, threshold)
 
 
-def _complete(topo: ContactTopology, A: np.ndarray, B: np.ndarray, near, band: float, threshold: float, counts: dict):
-    """The rest of a frame from :func:`_prepare`'s ``near``: :func:`contact_frame`'s result."""
-    selector, (near_a, near_b) = near
-    d_a, f_a = _direction(topo, selector, 1, A, B, near_a, band, threshold, counts)
-    d_b, f_b = _direction(topo, selector, 0, B, A, near_b, band, threshold, counts)
+def _complete(topo: ContactTopology, A: np.ndarray, B: np.ndarray, near, band: float, counts: dict):
+    """The rest of a frame from :func:`_prepare`'s ``near`` (libigl, which holds the GIL, and
+    the flood fill): :func:`contact_frame`'s result."""
+    near_a, near_b = near
+    d_a, f_a = _direction(topo, A, B, near_a, band, counts)
+    d_b, f_b = _direction(topo, B, A, near_b, band, counts)
     counts["deep_vertices"] += _flood_deep(topo, A, d_a, band) + _flood_deep(topo, B, d_b, band)
     return np.stack([d_a, d_b]), np.stack([f_a, f_b])
 
@@ -443,31 +443,32 @@ def _compute_frames(topo: ContactTopology, verts_a, verts_b, frames, threshold: 
     :func:`_frame_result`'s tuple, or None when the bodies are farther apart than ``band``.
     ``counts`` accumulates the query counts; ``on_done()`` after each frame.
 
-    A pipeline of two stages: a helper thread runs the BVH queries of frame ``t + 1``
-    (:func:`_prepare`, warp, outside the GIL) while this thread finishes frame ``t``
-    (:func:`_complete`: numpy and libigl, which holds the GIL), each frame on one of two
-    selectors in turn. On a hug's contact frames (2 CPUs), in a prototype of this loop timed once
-    with a script outside the repo: 32-35 -> 39-42 frame pairs/s (a 0.5 ms thread switch interval instead of Python's 5 ms added 1-4 more:
-    not worth changing a process-wide setting).
+    A pipeline: two helper threads run the narrow phases of frames ``t + 1`` and ``t + 2``
+    (:func:`_prepare`, warp kernels, outside the GIL) while this thread finishes frame ``t``
+    (:func:`_complete`: libigl, which holds the GIL, and numpy), each frame on one of
+    :data:`SELECTORS` selectors in turn. On the hug window of ``benchmarks/bench_contacts.py``
+    (2 CPUs), timed with a script outside the repo: ~65 frame pairs/s with one frame ahead, ~70
+    with two, ~69 with three (a shorter thread switch interval than Python's 5 ms did not help).
     """
     from concurrent.futures import ThreadPoolExecutor
 
     sels = _selectors(topo)
     frames = [int(t) for t in frames]
+    ahead = len(sels) - 1  # frames prepared while this one is finished
 
     def prepare(i: int):
         A, B = _as_frame(topo, verts_a[frames[i]], verts_b[frames[i]])
-        return A, B, _prepare(A, B, band, sels[i % 2])
+        return A, B, _prepare(A, B, band, threshold, sels[i % len(sels)])
 
     if not frames:
         return
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="contacts-prepare") as pool:
-        job = pool.submit(prepare, 0)
+    with ThreadPoolExecutor(max_workers=ahead, thread_name_prefix="contacts-prepare") as pool:
+        jobs = collections.deque(pool.submit(prepare, i) for i in range(min(ahead, len(frames))))
         for i, t in enumerate(frames):
-            A, B, near = job.result()
-            if i + 1 < len(frames):
-                job = pool.submit(prepare, i + 1)  # the other selector: this frame's is still in use
-            frame = None if near is None else _complete(topo, A, B, near, band, threshold, counts)
+            A, B, near = jobs.popleft().result()
+            if i + ahead < len(frames):
+                jobs.append(pool.submit(prepare, i + ahead))  # a selector no frame in flight uses
+            frame = None if near is None else _complete(topo, A, B, near, band, counts)
             result = None if frame is None else _frame_result(topo, frame, threshold)
             if on_done is not None:
                 on_done()

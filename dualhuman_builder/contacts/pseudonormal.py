@@ -17,7 +17,10 @@ build and per-point tree walk:
   built from them as ``igl.per_edge_normals`` (uniform) and ``igl.per_vertex_normals`` (angle)
   build theirs (only for the edges and vertices asked about; normalising does not change a sign).
 
-:class:`MeshAdjacency` holds the index arrays this needs, built once per topology.
+:class:`MeshAdjacency` holds the index arrays this needs, built once per topology. The contact
+stage computes the same rule inside its narrow-phase warp kernel
+(:mod:`dualhuman_builder.contacts.narrow`, float64, for the vertices whose closest face it has just
+found); this module is the readable reference it is tested against.
 ``tests/test_pseudonormal.py`` checks value and sign against ``igl.signed_distance`` of the
 whole mesh on the closest faces libigl reports (a posed anny body, every feature kind), and
 ``tests/test_contacts.py`` the contacts built on it against the brute force.
