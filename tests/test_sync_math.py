@@ -574,3 +574,22 @@ def test_calibrate_mounts_errors():
         calibrate_mounts(t, seg_rot, bad, trk_rot, trk_pos, v)
     with pytest.raises(ValueError, match="times_s must increase strictly"):
         calibrate_mounts(t[::-1], seg_rot, seg_pos, trk_rot, trk_pos, valid)
+
+
+def test_the_heading_search_scales_orientation_residuals_per_axis():
+    """The orientation residuals' robust scale is a per-axis sigma, as the positions' is (the
+    heading search sums squared 3-D residuals over it): for normal residuals of 0.01 rad per axis
+    it reads ~0.01, not the 0.023 that 1.4826 x the median angle gives (which weighed the
+    orientations 5.2x too little against the tracker constellation); no inliers: 1.0."""
+    from dualhuman_builder.sync.mount import _axis_sigma
+
+    rng = np.random.default_rng(3)
+    rv = rng.normal(0.0, 0.01, (4000, 3, 3))
+    rv[::10, 1] = 0.5  # outliers, left out by the inlier mask
+    inl = np.ones((4000, 3), bool)
+    inl[::10, 1] = False
+    inl[:, 2] = False
+    sig = _axis_sigma(rv, inl)
+    np.testing.assert_allclose(sig[:2], 0.01, rtol=0.05)
+    assert sig[2] == 1.0
+    assert 1.4826 * np.median(np.linalg.norm(rv[:, 0], axis=-1)) > 2.2 * sig[0]  # the angle's scale

@@ -735,7 +735,7 @@ class _HeadingProblem:
 
     def nll(self, psi) -> float:
         """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
-        (over each tracker's robust scale ``sig_rot``, set by :meth:`search`), position residuals,
+        (over each tracker's robust per-axis scale ``sig_rot``, set by :meth:`search`), position residuals,
         drift random walk, mount-site prior."""
         (G, M, m, eps, d_knots, _, _, en), ang = self._orientation_residuals(psi)
         rot = float(np.sum(self.inl_f * (ang / self.sig_rot[None]) ** 2))
@@ -747,10 +747,13 @@ class _HeadingProblem:
     def search(self, psi) -> tuple[float, float]:
         """``(offset rad, 1-sigma deg)``: the constant heading offset minimising :meth:`nll`. Each
         tracker's orientation scale is measured once, at ``psi`` (the heading the orientations
-        chose): measured at an offset heading it would swell and mute the orientations."""
-        _, ang = self._orientation_residuals(psi)
-        self.sig_rot = np.array([max(1.4826 * float(np.median(ang[self.inl[:, k], k])), 1e-4)
-                                 if self.inl[:, k].any() else 1.0 for k in range(ang.shape[1])])  # fmt: skip
+        chose): measured at an offset heading it would swell and mute the orientations. It is a
+        per-axis sigma (1.4826 x the median absolute component of the residual rotation vectors), as
+        the positions' is: :meth:`nll` sums squared 3-D residuals over it. (1.4826 x the median
+        *angle* would be 2.28 sigma, the angle of a 3-D normal residual having its median at 1.54
+        sigma, and would weigh the orientations 5.2x too little against the constellation.)"""
+        G, M = self.solve(psi)[:2]
+        self.sig_rot = _axis_sigma(_rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)[1], self.inl)
         step, fine = math.radians(_SCAN_STEP_DEG), math.radians(_SCAN_FINE_DEG)
         grid = np.arange(-_SCAN_RANGE_DEG, _SCAN_RANGE_DEG + 1e-9, _SCAN_STEP_DEG)
         costs = np.array([self.nll(psi + math.radians(g)) for g in grid])
@@ -762,6 +765,14 @@ class _HeadingProblem:
             return float(x[int(np.argmin(f))]), float("inf")
         off = best + float(np.clip(-b / (2 * a), -step, step))
         return off, math.degrees(1.0 / math.sqrt(2.0 * a))
+
+
+def _axis_sigma(rv: np.ndarray, inl: np.ndarray) -> np.ndarray:
+    """Per tracker, the robust per-axis scale (rad) of residual rotation vectors ``rv (T, K, 3)``
+    over its inliers ``inl (T, K)``: 1.4826 x the median absolute component (the normal's sigma
+    for a normal residual), at least 1e-4; 1.0 for a tracker without inliers."""
+    return np.array([max(1.4826 * float(np.median(np.abs(rv[inl[:, k], k]))), 1e-4) if inl[:, k].any() else 1.0
+                     for k in range(rv.shape[1])])  # fmt: skip
 
 
 def _solve_translation(knots: _Knots, j, u, blocks, y, w, rate, prior_mean: np.ndarray, prior_precision: np.ndarray):
