@@ -14,6 +14,8 @@ Prints: fit frame pairs/s without the collision term, with it (contacts held thr
 the default: ``FitConfig.collision_hold_contacts``), and with it located at every evaluation
 (``exact``, the baseline), median of --runs each, in this process; the held/exact ratio; anny
 forward+backward bodies/s at batch 2 x window, the fit/anny ratios, and the process's peak RSS.
+torch runs on ``--threads`` CPU threads (default ``FitConfig.torch_threads``, 1: fits that repeat
+exactly) for the fits and anny's rate alike.
 """
 
 from __future__ import annotations
@@ -73,6 +75,8 @@ def main():
     ap.add_argument("--collision", choices=("all", "held", "exact", "off"), default="all",
                     help="fit without the collision term (off), with it and the contacts held through each pass "
                          "(held, the default fit), with them located at every evaluation (exact), or all three (default)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads for the fit and for anny's raw rate (default: FitConfig.torch_threads, 1)")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import FitConfig, fit_actors
@@ -80,13 +84,16 @@ def main():
     model = get_body_model(args.device)
     inp = inputs(get_body_model(), args.minutes, args.fps)
     T = len(inp[0].seg_rot)
+    threads = FitConfig().torch_threads if args.threads is None else args.threads
+    if threads > 0:
+        torch.set_num_threads(threads)  # anny's raw rate below at the fit's setting
     print(f"take: {args.minutes:g} min at {args.fps:g} fps = {T} frame pairs; device {args.device}; torch threads {torch.get_num_threads()}")
     medians = {}
     modes = {"all": ("off", "held", "exact")}.get(args.collision, (args.collision,))
     names = {"off": "without collision term", "held": "with collision term, contacts held",
              "exact": "with collision term, contacts located at every evaluation"}
     for mode in modes:
-        cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device)
+        cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads)
         rates = []
         for _ in range(args.runs):
             res = fit_actors(model, inp, args.fps, cfg)

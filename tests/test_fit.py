@@ -428,3 +428,31 @@ def test_a_foot_in_stance_stands_on_the_floor(model):
     # sunk 5 mm: the floor term lifts it out, but with nothing holding it above the floor (no trackers
     # here) only the contact term puts it back on the floor
     assert lowest(floor - 0.005, 0.0).min() > -1e-3 and np.abs(lowest(floor - 0.005, 0.002)).max() < 5e-4
+
+
+def test_the_fit_runs_on_the_configured_torch_threads_and_restores_the_callers(model):
+    """torch's CPU threads are ``FitConfig.torch_threads`` during the fit (1 by default: with more,
+    fits of the same inputs differed between runs), and the caller's setting afterwards, also when
+    the fit fails; 0 leaves the caller's setting."""
+    import dataclasses
+
+    import torch
+
+    from dualhuman_builder.fit.fitter import FitConfig, FitError, fit_actors
+
+    seen = []
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        inputs = _overlapping_pair(4, dx=1.0)  # far apart: the skeleton pass only
+        for threads, expect in ((1, 1), (0, 2)):
+            fit_actors(model, inputs, 15.0, FitConfig(window=4, iterations=2, torch_threads=threads),
+                       progress=lambda _m: seen.append(torch.get_num_threads()))  # fmt: skip
+            assert seen and set(seen) == {expect} and torch.get_num_threads() == 2
+            seen.clear()
+        with pytest.raises(FitError):
+            fit_actors(model, [inputs[0], dataclasses.replace(inputs[1], seg_rot=inputs[1].seg_rot[:2])], 15.0,
+                       FitConfig(torch_threads=1))  # fmt: skip
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

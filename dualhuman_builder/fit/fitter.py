@@ -148,6 +148,16 @@ class FitConfig:
     #: second difference of the openings, per s^2 (scaled by fps like the joint acceleration)
     sigma_hand_opening_accel_s2: float = 40.0
     device: str = "cpu"
+    #: torch's intra-op CPU threads during the fit (the caller's setting is restored after); 0: leave
+    #: it. With 1 a fit of the same inputs repeats exactly. With 2 it did not: two fits of the fit
+    #: benchmark's hug in one process left 1.94 and 1.38 mm, and a dance turn fitted beside two busy
+    #: processes moved its bodies by up to 0.24 (pose, radians) against one fitted alone. Which of
+    #: torch's multi-threaded CPU kernels rounds differently was not found (MKL_DYNAMIC and
+    #: OMP_DYNAMIC set to FALSE did not help; the collision term's own threads count as load).
+    #: Two threads are ~10 % faster on that hug (36-39 s against 41 s) and ~20 % over the accuracy
+    #: benchmark's twelve takes (87 s against 106; partly different L-BFGS paths). The collision
+    #: term's warp queries keep their own threads either way
+    torch_threads: int = 1
 
 
 #: the range the hand openings are held in (soft walls): a little more curled than relaxed, to flat
@@ -301,7 +311,18 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
 
 def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = FitConfig(),
                progress: Callable[[str], None] | None = None) -> FitResult:  # fmt: skip
-    """Fit one or two actors over the whole timeline (see the module docstring)."""
+    """Fit one or two actors over the whole timeline (see the module docstring), with torch's CPU
+    threads set to ``cfg.torch_threads`` meanwhile."""
+    threads = torch.get_num_threads()
+    if cfg.torch_threads > 0:
+        torch.set_num_threads(int(cfg.torch_threads))
+    try:
+        return _fit_actors(model, inputs, fps, cfg, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, progress) -> FitResult:
     from dualhuman_builder.fit.collision import CollisionTerm
     from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
     from dualhuman_builder.tracks import BodyTrack, InteractionSequence
