@@ -27,10 +27,10 @@ against the whole closed mesh, and distances within the band equal to its answer
      found, in the same warp kernel (the rule of :mod:`dualhuman_builder.contacts.pseudonormal`:
      closest point, and the sign from the face, edge or vertex pseudonormal as libigl builds
      them; ``tests/test_pseudonormal.py`` checks the kernel against that module to 1e-12 m); any
-     that comes out inside (a deep penetration) goes to libigl too. Where two faces tie to float32 precision the BVH may
-     name either: the distance then differs from libigl's by less than 1e-7 m (the test's bound;
-     ``benchmarks/bench_contacts.py`` prints the largest difference), far below the float16 it is
-     stored in.
+     that comes out inside (a deep penetration) goes to libigl too. Where two faces tie to
+     float32 precision the BVH may name either: the distance then differs from libigl's by less
+     than 1e-7 m (the test's bound; ``benchmarks/bench_contacts.py`` prints the largest
+     difference), far below the float16 it is stored in.
 
    ``igl`` rebuilds its AABB tree and normals on every call (about 1.5 us per face) and spends
    about 5 us per point; the BVH's face walk for a vertex 4 cm away costs about as much, which is
@@ -46,8 +46,8 @@ against the whole closed mesh, and distances within the band equal to its answer
    only across them stays NaN, i.e. not in contact.)
 
 Frames run in the calling thread, pipelined: helper threads run the next two frames' narrow
-phases (mostly outside the GIL) while this one runs libigl on the last (:func:`_compute_frames`); or, for long
-sequences on machines with more than two CPUs, in worker processes
+phases (mostly outside the GIL) while this one runs libigl on the last (:func:`_compute_frames`);
+or, for long sequences on machines with more than two CPUs, in worker processes
 (:mod:`~dualhuman_builder.contacts.workers`): ``igl.signed_distance`` holds the GIL for each whole
 call, so threads cannot share the rest of the work.
 
@@ -155,7 +155,7 @@ class ContactTopology:
 _LOCAL = threading.local()
 
 
-def _selectors(topo: ContactTopology) -> tuple[NearSelector, NearSelector]:
+def _selectors(topo: ContactTopology) -> tuple[NearSelector, ...]:
     """This thread's :data:`SELECTORS` :class:`NearSelector` for ``topo`` (built on first use: ~10 ms
     each), so that the sequence loop can prepare the next frames with some while it finishes the
     last with another."""

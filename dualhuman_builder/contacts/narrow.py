@@ -259,7 +259,8 @@ class NearSelector:
         as32 = functools.partial(wp.array, dtype=wp.int32, device="cpu")
         self._tri = wp.array(faces, dtype=wp.vec3i, device="cpu")
         self._across = wp.array(np.ascontiguousarray(adj.across, dtype=np.int32), dtype=wp.vec3i, device="cpu")
-        self._ring = [as32(np.ascontiguousarray(a, dtype=np.int32)) for a in (adj.ring_ptr, adj.ring_face, adj.ring_corner)]
+        self._ring = [as32(np.ascontiguousarray(a, dtype=np.int32))
+                      for a in (adj.ring_ptr, adj.ring_face, adj.ring_corner)]  # fmt: skip
         self._points, self._meshes, self._surface64 = [], [], []
         for _ in range(2):
             pts = wp.array(ref, dtype=wp.vec3, device="cpu")
@@ -271,13 +272,16 @@ class NearSelector:
         self._pool: ThreadPoolExecutor | None = None
 
     def _query_buffers(self, target: int, n: int) -> dict:
+        """Target ``target``'s warp arrays for ``n`` query points (kept between calls, so a frame
+        allocates nothing): points (float32, shifted; float64), closest face, distance, signed
+        distance."""
         wp = self._wp
         buf = self._buffers[target]
         if buf is None or buf["n"] != n:
             buf = self._buffers[target] = {
-                "n": n, "points": wp.empty(n, dtype=wp.vec3, device="cpu"), "points64": wp.empty(n, dtype=wp.vec3d, device="cpu"),
-                "face": wp.empty(n, dtype=wp.int32, device="cpu"), "dist": wp.empty(n, dtype=float, device="cpu"),
-                "signed": wp.empty(n, dtype=wp.float64, device="cpu")}  # fmt: skip
+                "n": n, "points": wp.empty(n, dtype=wp.vec3, device="cpu"),
+                "points64": wp.empty(n, dtype=wp.vec3d, device="cpu"), "face": wp.empty(n, dtype=wp.int32, device="cpu"),
+                "dist": wp.empty(n, dtype=float, device="cpu"), "signed": wp.empty(n, dtype=wp.float64, device="cpu")}  # fmt: skip
         return buf
 
     def query(self, target: int, points: np.ndarray, surface: np.ndarray, band: float,
@@ -291,7 +295,7 @@ class NearSelector:
         wp = self._wp
         surface = np.ascontiguousarray(surface, dtype=np.float64)
         points = np.ascontiguousarray(points, dtype=np.float64)
-        origin = surface[::64].mean(axis=0)  # float32 near 0: see the module docstring (any point near the body will do)
+        origin = surface[::64].mean(axis=0)  # float32 near 0 (module docstring); any point near the body will do
         Q = (surface - origin).astype(np.float32)
         self._points[target].assign(Q)
         mesh = self._meshes[target]
