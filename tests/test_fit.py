@@ -129,9 +129,10 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev["clock_offset_error_ms"] < 5.0
     assert ev["foot_slide_mm"] < 5.0
     # the collision passes take the skeleton pass's hand overlap (10-20 mm; 9.8 in one recording since the
-    # heading search weighs the orientations properly, 6.8-7.1 since sync solves the suit's misalignments)
-    # down to the tolerance (2 mm; ~1 mm measured), within the issue's 5 mm whatever the recording's timing
-    assert ev["max_penetration_before_mm"] > 4 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
+    # heading search weighs the orientations properly, 6.8-7.1 since sync solves the suit's misalignments,
+    # 3.5-3.9 since it scales them per axis: above the 2 mm tolerance, so the passes must act) down to the
+    # tolerance (~0.6 mm measured), within the issue's 5 mm whatever the recording's timing
+    assert ev["max_penetration_before_mm"] > 2.5 and ev["max_penetration_mm"] < 5.0, tf.fit.summary
     assert ev["max_penetration_mm"] < 0.5 * ev["max_penetration_before_mm"], tf.fit.summary
     assert ev["penetrating_share"] < 0.5 * ev["penetrating_share_before"]
     # the suit gives no fingers: the collision passes opened the clasped hands, within the openings' range
