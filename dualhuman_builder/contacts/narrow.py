@@ -10,7 +10,7 @@ refit to each frame: under 1 ms) and answers one direction of a frame with
   closest face of the other body and its unsigned distance ``d(p)`` in float32, when within
   ``band + slack`` (the **near** vertices). For a near vertex with ``d(p)`` above a given
   threshold (plus the slack) the same kernel also computes, in float64 on that face, libigl's
-  pseudonormal signed distance (:func:`_pseudonormal_distance`, the rule of
+  pseudonormal signed distance (``pseudonormal_distance`` in :func:`_kernels`, the rule of
   :mod:`dualhuman_builder.contacts.pseudonormal`: closest point by Ericson's Voronoi regions,
   sign from the face, edge or angle-weighted vertex pseudonormal);
 * **gather** — for the near vertices libigl has to answer (possible contacts: ``d(p)`` up to the
@@ -33,7 +33,7 @@ against a brute-force query). Vertices left out are farther than the band from t
 Kernel launches release the GIL (warp calls them through ctypes), so :meth:`~NearSelector.query_pair`
 runs the two directions of a frame in two threads, and the contact stage runs the next frame's
 :meth:`~NearSelector.query_pair` while libigl finishes the last frame
-(``contacts.compute._compute_frames``, on a second selector). Everything of a direction but
+(``contacts.compute._compute_frames``, on other selectors). Everything of a direction but
 libigl's call therefore runs in these helper threads, mostly outside the GIL.
 """
 
@@ -277,9 +277,9 @@ class NearSelector:
         distance."""
         wp = self._wp
         buf = self._buffers[target]
-        if buf is None or buf["n"] != n:
+        if buf is None or buf["face"].shape[0] != n:
             buf = self._buffers[target] = {
-                "n": n, "points": wp.empty(n, dtype=wp.vec3, device="cpu"),
+                "points": wp.empty(n, dtype=wp.vec3, device="cpu"),
                 "points64": wp.empty(n, dtype=wp.vec3d, device="cpu"), "face": wp.empty(n, dtype=wp.int32, device="cpu"),
                 "dist": wp.empty(n, dtype=float, device="cpu"), "signed": wp.empty(n, dtype=wp.float64, device="cpu")}  # fmt: skip
         return buf

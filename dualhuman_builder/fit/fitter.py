@@ -54,7 +54,8 @@ interlocked (one's finger in the other's palm, the other's thumb in the first ha
 two pushes oppose each other however it is weighted: up to twice per window, each run of too-deep
 frames holding a stuck one starts the next round from the straight line between the frames just
 around it (``collision_restart``; dance turn 1 of the accuracy benchmark: 9.0 -> 1.9 mm with one
-restart; a later recording of it left 8.8 mm at frame 82 after one and 1.2 mm after a second).
+restart; after the heading fix of 2026-11-24 in sync its recording left 8.8 mm at frame 82 after
+one and 1.2 mm after a second).
 """
 
 # ruff: noqa: B023 -- the L-BFGS closures run inside the loop iteration that defines them
@@ -153,10 +154,11 @@ class FitConfig:
     #: benchmark's hug in one process left 1.94 and 1.38 mm, and a dance turn fitted beside two busy
     #: processes moved its bodies by up to 0.24 (pose, radians) against one fitted alone. Which of
     #: torch's multi-threaded CPU kernels rounds differently was not found (MKL_DYNAMIC and
-    #: OMP_DYNAMIC set to FALSE did not help; the collision term's own threads count as load).
-    #: Two threads are ~10 % faster on that hug (36-39 s against 41 s) and ~20 % over the accuracy
-    #: benchmark's twelve takes (87 s against 106; partly different L-BFGS paths). The collision
-    #: term's warp queries keep their own threads either way
+    #: OMP_DYNAMIC set to FALSE did not help; the collision term's own threads count as load). Two
+    #: threads were ~10 % faster on that hug (36-39 s against 41 s; these figures from scripts
+    #: outside the repo) and ~20 % over the accuracy benchmark's twelve takes (87 s against 106,
+    #: partly different L-BFGS paths; ``bench_fit.py --threads 2`` compares). The collision term's
+    #: warp queries keep their own threads either way
     torch_threads: int = 1
 
 

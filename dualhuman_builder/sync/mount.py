@@ -728,16 +728,17 @@ class _HeadingProblem:
         return G, M, m, eps, d_knots, cov, e, np.linalg.norm(e, axis=-1)
 
     def _orientation_residuals(self, psi):
-        """``(solve(psi), angles (T, K) rad)``: the re-solved mounts and each sample's rotation residual."""
+        """``(solve(psi), angles (T, K) rad, rotation vectors (T, K, 3) rad)``: the re-solved mounts
+        and each sample's rotation residual."""
         solved = self.solve(psi)
         G, M = solved[0], solved[1]
-        return solved, _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)[0]
+        return (solved, *_rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt))
 
     def nll(self, psi) -> float:
         """Negative log-likelihood (up to a constant) at heading ``psi``: orientation residuals
         (over each tracker's robust per-axis scale ``sig_rot``, set by :meth:`search`), position residuals,
         drift random walk, mount-site prior."""
-        (G, M, m, eps, d_knots, _, _, en), ang = self._orientation_residuals(psi)
+        (G, M, m, eps, d_knots, _, _, en), ang, _ = self._orientation_residuals(psi)
         rot = float(np.sum(self.inl_f * (ang / self.sig_rot[None]) ** 2))
         pos = float(np.sum(self.w_pos * en**2))
         walk = float(np.sum(np.diff(d_knots, axis=0) ** 2)) / (self.rate**2 * self.dk.step)
@@ -752,8 +753,7 @@ class _HeadingProblem:
         the positions' is: :meth:`nll` sums squared 3-D residuals over it. (1.4826 x the median
         *angle* would be 2.28 sigma, the angle of a 3-D normal residual having its median at 1.54
         sigma, and would weigh the orientations 5.2x too little against the constellation.)"""
-        G, M = self.solve(psi)[:2]
-        self.sig_rot = _axis_sigma(_rot_residual(np.swapaxes(G @ M[None], -1, -2) @ self.Rt)[1], self.inl)
+        self.sig_rot = _axis_sigma(self._orientation_residuals(psi)[2], self.inl)
         step, fine = math.radians(_SCAN_STEP_DEG), math.radians(_SCAN_FINE_DEG)
         grid = np.arange(-_SCAN_RANGE_DEG, _SCAN_RANGE_DEG + 1e-9, _SCAN_STEP_DEG)
         costs = np.array([self.nll(psi + math.radians(g)) for g in grid])
