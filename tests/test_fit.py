@@ -46,6 +46,34 @@ def test_body_rig_is_anny_exactly(model):
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
 
 
+def test_the_skeleton_terms_linear_pose_is_the_rigs_pose(model):
+    """:meth:`BodyRig.pose_linear` (one matrix product) gives the heads and skinned vertices that
+    :meth:`BodyRig.pose` gives, whatever the hands' openings, with the same gradient; bones or
+    vertices the openings move are refused."""
+    from dualhuman_builder.fit.skeleton import sole_vertices
+
+    rig, A, transl = _rig_and_pose(model, 1)
+    A.requires_grad_(True)
+    soles = sole_vertices(model)
+    ids = np.r_[soles["L"], soles["R"], [0, 100, 5000]]
+    bones = np.r_[model.joint22_index.numpy(), rig.segment_bones.numpy()]
+    rig.add_linear("terms", bones, ids)
+    heads, verts = rig.pose_linear(A, transl, "terms")
+    assert heads.shape == (3, len(bones), 3) and verts.shape == (3, len(ids), 3)
+    ref = rig.pose(A, transl, opening=torch.tensor([[0.0] * 4, [1.0] * 4, [0.3, -0.2, 0.8, 0.5]]))
+    assert (heads - ref.heads[:, bones]).abs().max() < 1e-5
+    assert (verts - ref.vertices[:, ids]).abs().max() < 1e-5
+    g = torch.autograd.grad((heads.sum() + verts.pow(2).sum()), A)[0]
+    g_ref = torch.autograd.grad((ref.heads[:, bones].sum() + ref.vertices[:, ids].pow(2).sum()), A)[0]
+    assert g.abs().max() > 0.1 and torch.allclose(g, g_ref, atol=1e-4)
+    finger = [i for i, n in enumerate(model.bone_names) if n.startswith("finger2-2.L")][0]
+    tip = int(np.flatnonzero(model.vertex_bone() == finger)[0])
+    with pytest.raises(ValueError, match="hand openings"):
+        rig.add_linear("bad", bones, [tip])
+    with pytest.raises(ValueError, match="hand openings"):
+        rig.add_linear("bad", [finger], ids)
+
+
 def test_hand_opening_is_anny_and_the_scenes_flat_hand(model):
     from dualhuman_builder.body.hands import OPENINGS
     from dualhuman_builder.sim.performer import Performer

@@ -23,10 +23,10 @@ resting on the partner opens flat instead of leaving the relaxed thumb and finge
 (the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). Each
 window's collision passes start with one over the openings alone, then the full rounds.
 
-The skeleton terms use the
-:class:`~dualhuman_builder.fit.skeleton.BodyRig` (bone heads and ~80 sole vertices per actor: a
-few milliseconds per window iteration); the full meshes are skinned only for frames whose bodies
-penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
+The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
+rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a
+48-frame window's energy and gradient, both actors, in ~7 ms instead of ~21 through the whole
+rig); the full meshes are skinned only for frames whose bodies penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
 and only those frames get the collision pass (their full meshes skinned without gradient, to find the
 contacts; the few thousand (frame, vertex) pairs the loss reads are skinned again with it,
 :meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`). Frames far apart pay nothing. The collision term is
@@ -235,7 +235,6 @@ class _Actor:
         dev, dt = torch.device(cfg.device), torch.float32
         self.name = inp.name
         self.rig = BodyRig(model, inp.shape, device=dev)
-        self.rig.add_subset("soles", np.concatenate([soles["L"], soles["R"]]))
         self.n_sole = len(soles["L"])
         valid = np.asarray(inp.valid, bool)
         rot = _fill(np.asarray(inp.seg_rot, np.float64), valid)
@@ -248,16 +247,29 @@ class _Actor:
         self.trk_seg = torch.as_tensor(np.asarray(inp.trk_segment, np.int64), device=dev)
         self.trk_bone = self.rig.segment_bones[self.trk_seg] if len(inp.trk_segment) else self.trk_seg
         self.trk_off = torch.as_tensor(np.asarray(inp.trk_offset, np.float64), dtype=dt, device=dev)
+        # what the skeleton terms read, linear in the driven rotations (BodyRig.pose_linear): the 22
+        # joints, the trackers' bones, the two feet's bones, the sole vertices
+        self.joints = self.rig.model.joint22_index.to(dev)
+        foot = self.rig.segment_bones[[MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]
+        self.rig.add_linear("skeleton", torch.cat([self.joints, self.trk_bone, foot]).cpu().numpy(),
+                            np.concatenate([soles["L"], soles["R"]]))  # fmt: skip
+        self._nj, self._nk = len(self.joints), len(self.trk_bone)
         with torch.no_grad():
-            rest = self.rig.pose(torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3), torch.zeros(1, 3, device=dev), "soles")
-            foot = [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]
-            ankle_h = rest.heads[0, self.rig.segment_bones[foot], 1].cpu().numpy()
-            sole_h = np.array([rest.vertices[0, : self.n_sole, 1].min().item(), rest.vertices[0, self.n_sole :, 1].min().item()])
+            heads, sole = self.skeleton(torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3), torch.zeros(1, 3, device=dev))
+            ankle_h = heads[2][0, :, 1].cpu().numpy()
+            sole_h = np.array([sole[0, : self.n_sole, 1].min().item(), sole[0, self.n_sole :, 1].min().item()])
         ankles = _interp_rows(np.asarray(inp.ankles, np.float64).reshape(len(valid), -1), valid).reshape(-1, 2, 3)
         self.stance = torch.as_tensor(stance_mask(ankles, fps, ankle_h - sole_h, cfg), device=dev)
-        self.joints = self.rig.model.joint22_index.to(dev)
 
-    def pose(self, delta, dtransl, sl, vertices="soles", opening=None):
+    def skeleton(self, rot, transl):
+        """What the skeleton terms read of driven-bone rotations ``rot (n, 23, 3, 3)`` and root
+        positions ``transl (n, 3)`` (metres): the heads ``((n, 22, 3) joints, (n, K, 3) the trackers'
+        bones, (n, 2, 3) the feet's)`` and the sole vertices ``(n, 2 n_sole, 3)`` (left then right)."""
+        heads, soles = self.rig.pose_linear(rot, transl, "skeleton")
+        nj, nk = self._nj, self._nk
+        return (heads[:, :nj], heads[:, nj : nj + nk], heads[:, nj + nk :]), soles
+
+    def pose(self, delta, dtransl, sl, vertices=True, opening=None):
         """Bones (and ``vertices``) of timeline frames ``sl`` (a slice or an index tensor) with the
         corrections ``delta (n, 23, 3)`` rotation vectors and ``dtransl (n, 3)`` metres, and the
         hand openings ``opening (n, 4)`` (None: relaxed hands)."""
@@ -267,18 +279,18 @@ class _Actor:
 
 def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float):
     """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles, openings) of the two
-    frames before ``sl`` (fixed, from the previous window) or None. Returns (energy, posed, rot)."""
-    rot, posed = act.pose(delta, dtransl, sl, opening=opening)
+    frames before ``sl`` (fixed, from the previous window) or None. Returns (energy, rot): ``rot (n,
+    23, 3, 3)`` the driven bones' rotations (for the collision passes' full poses)."""
+    rot = roma.rotvec_to_rotmat(delta) @ act.target[sl]
+    (joints, trk_heads, _), soles = act.skeleton(rot, act.transl0[sl] + dtransl)
     valid = act.valid[sl].float()
     s_o = np.radians(cfg.sigma_orientation_deg)
     e = (delta.pow(2).sum((-1, -2)) * valid).sum() / s_o**2
     if len(act.trk_seg):
         seg_frame = rot[:, act.trk_seg] @ act.rig.seg_frame[act.trk_seg]  # (W, K, 3, 3)
-        site = posed.heads[:, act.trk_bone] + (seg_frame @ act.trk_off[None, :, :, None])[..., 0]
+        site = trk_heads + (seg_frame @ act.trk_off[None, :, :, None])[..., 0]
         r = (site - act.trk_pos[sl]).pow(2).sum(-1) * act.trk_valid[sl].float()
         e = e + r.sum() / cfg.sigma_tracker_m**2
-    joints = posed.heads[:, act.joints]
-    soles = posed.vertices
     if ctx is not None:
         joints = torch.cat([ctx[0], joints], 0)
         soles_all = torch.cat([ctx[1], soles], 0)
@@ -308,7 +320,7 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
     if o.shape[0] >= 3:
         s_h = cfg.sigma_hand_opening_accel_s2 / fps**2
         e = e + (o[2:] - 2 * o[1:-1] + o[:-2]).pow(2).sum() / s_h**2
-    return e, posed, rot
+    return e, rot
 
 
 def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = FitConfig(),
@@ -371,8 +383,9 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
             for k, a in enumerate(acts):
                 if ctx_n:
                     csl = slice(s0 - ctx_n, s0)
-                    _, p = a.pose(deltas[k][csl], dtransl[k][csl], csl, opening=openings[k][csl])
-                    ctxs.append((p.heads[:, a.joints], p.vertices, openings[k][csl]))
+                    rot = roma.rotvec_to_rotmat(deltas[k][csl]) @ a.target[csl]
+                    (joints, _, _), sole = a.skeleton(rot, a.transl0[csl] + dtransl[k][csl])
+                    ctxs.append((joints, sole, openings[k][csl]))
                 else:
                     ctxs.append(None)
         params = []
@@ -393,9 +406,9 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
             total = 0.0
             outs = []
             for k, a in enumerate(acts):
-                e, posed, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps)
+                e, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps)
                 total = total + e
-                outs.append((posed, rot))
+                outs.append(rot)
             return total, outs
 
         opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
@@ -460,11 +473,14 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
                         if not _finite(params):
                             raise _Diverged
                         copt.zero_grad()
-                        e, outs = skeleton_energy()
+                        e, rots = skeleton_energy()
+                        # every bone of the hit frames (fingers opened), for the few thousand (frame, vertex)
+                        # pairs the loss reads, skinned with the gradient
+                        posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[s0 + hit_t] + params[P * k + 1][hit_t], False,
+                                                params[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
 
-                        # the loss reads a few thousand (frame, vertex) pairs, skinned with the gradient
                         def at(body, f, v):
-                            return acts[body].rig.skin_at(outs[body][0], hit_t[f], v)
+                            return acts[body].rig.skin_at(posed_hit[body], f, v)
 
                         if held is not None:
                             c = collide.linear_loss(held, at, device=dev).sum()
