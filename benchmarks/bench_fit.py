@@ -101,7 +101,7 @@ def main():
         medians[mode] = statistics.median(rates)
         s = res.summary
         extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
-                 f"windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
+                 f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
         print(f"fit {names[mode]}: {medians[mode]:.1f} frame pairs/s (median of {args.runs}{extra})", flush=True)
     if "held" in medians and "exact" in medians:
         print(f"held / exact: {medians['held'] / medians['exact']:.2f}x")

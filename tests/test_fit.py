@@ -357,14 +357,15 @@ def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes
     assert s["collision_rounds_used"] == rounds and s["collision_worsened"] == []
 
 
-def test_held_contacts_settle_a_window_and_a_stalled_one_is_fitted_again_exactly(model, monkeypatch):
+def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exactly(model, monkeypatch):
     """By default each collision pass locates the contacts once and holds them (``linear_loss``), and
-    the contacts are never located at every evaluation where the held rounds settle the window. A
-    window whose held rounds stall (here the held term is made to push nothing, so round 1 leaves the
-    overlap as it found it) or end unsettled is fitted again from its skeleton pass with the contacts
-    located at every evaluation: the same bodies as a fit that never holds them, and both the window
-    and the stalled round are listed. (Bodies on one spot, as in the tests above, stall the held
-    rounds without help: half their vertices inside, the closest faces all change as they part.)"""
+    the contacts are never located at every evaluation where the held rounds settle the window. When
+    a held round stalls (here the held term is made to push nothing in frame 0, so round 1 leaves it
+    as deep as it found it), the frames it left deeper than 75 % of the window's deepest start have
+    their contacts located at every evaluation (``__call__``) from the next round on, the others stay
+    held. A window the rounds leave unsettled (here: one round only, pushing nothing anywhere) is
+    fitted again from its skeleton pass the exact way: the same bodies as a fit that never holds the
+    contacts. Stalled rounds, exact frames and refitted windows are listed."""
     from dualhuman_builder.fit import collision
 
     T = 2
@@ -374,9 +375,11 @@ def test_held_contacts_settle_a_window_and_a_stalled_one_is_fitted_again_exactly
     real_call, real_linear = collision.CollisionTerm.__call__, collision.CollisionTerm.linear_loss
 
     def count(kind, fn):
-        def wrapped(*a, **k):
+        def wrapped(self, *a, **k):
             calls[kind] += 1
-            return fn(*a, **k)
+            if kind == "exact":
+                calls["exact rows"] = calls.get("exact rows", 0) + len(a[0])
+            return fn(self, *a, **k)
 
         return wrapped
 
@@ -385,23 +388,38 @@ def test_held_contacts_settle_a_window_and_a_stalled_one_is_fitted_again_exactly
     held = fit_actors(model, inputs, 15.0, cfg)
     s = held.summary
     assert calls["held"] > 0 and calls["exact"] == 0
-    assert s["collision_exact_windows"] == [] and s["collision_held_stalled"] == []
+    assert s["collision_exact_frames"] == [] and s["collision_exact_windows"] == [] and s["collision_held_stalled"] == []
     assert s["max_penetration_before_mm"] > 20 and s["max_penetration_after_mm"] <= 1000 * cfg.collision_tolerance_m
+
+    def nothing_in_frame_0(self, lin, points, device=None, dtype=torch.float32):
+        loss = real_linear(self, lin, points, device, dtype)
+        return loss * torch.tensor([0.0, 1.0]) if lin.B == 2 else loss  # (both frames held: rows 0, 1)
+
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", count("held", nothing_in_frame_0))
+    calls.update(held=0, exact=0, **{"exact rows": 0})
+    # feet free to slide: the frames share no term, so frame 1 cannot drag frame 0 out with it
+    mixed = fit_actors(model, inputs, 15.0, dataclasses.replace(cfg, sigma_slide_m=1e3))
+    s = mixed.summary
+    assert s["collision_held_stalled"] == ["frames 0-1, collision round 1, held contacts"]
+    assert s["collision_exact_frames"] == [0] and s["collision_exact_windows"] == []
+    assert calls["exact"] > 0 and calls["exact rows"] == calls["exact"]  # frame 0 alone, located every time
+    assert s["max_penetration_after_mm"] <= 1000 * cfg.collision_tolerance_m
 
     def pushes_nothing(self, lin, points, device=None, dtype=torch.float32):
         return real_linear(self, lin, points, device, dtype) * 0.0
 
     monkeypatch.setattr(collision.CollisionTerm, "linear_loss", count("held", pushes_nothing))
-    calls.update(held=0, exact=0)
-    stalled = fit_actors(model, inputs, 15.0, cfg)
-    assert calls["held"] > 0 and calls["exact"] > 0 and stalled.summary["collision_exact_windows"] == ["frames 0-1"]
-    assert stalled.summary["collision_held_stalled"] == ["frames 0-1, collision round 1, held contacts"]
-    exact = fit_actors(model, inputs, 15.0, dataclasses.replace(cfg, collision_hold_contacts=False))
+    one = dataclasses.replace(cfg, collision_rounds=1)
+    stalled = fit_actors(model, inputs, 15.0, one)
+    s = stalled.summary
+    assert s["collision_held_stalled"] == ["frames 0-1, collision round 1, held contacts"]
+    assert s["collision_exact_frames"] == [0, 1] and s["collision_exact_windows"] == ["frames 0-1"]
+    exact = fit_actors(model, inputs, 15.0, dataclasses.replace(one, collision_hold_contacts=False))
     assert exact.summary["collision_exact_windows"] == [] and exact.summary["collision_held_stalled"] == []
     for a, b in zip(stalled.sequence.actors, exact.sequence.actors):
         np.testing.assert_allclose(a.transl, b.transl, atol=1e-6)
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-5)
-    assert stalled.summary["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
+    assert s["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
 
 
 def test_stuck_frames_restart_from_their_neighbours():

@@ -146,6 +146,10 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
             log(f"WARNING: the collision pass diverged ({where}) and was undone; those frames may still overlap")
         for where in res.summary.get("collision_worsened", []):
             log(f"WARNING: a collision pass left the bodies deeper in each other ({where}) and was undone")
+        if res.summary.get("collision_exact_frames"):
+            log(f"fit: held contacts stalled in {len(res.summary['collision_exact_frames'])} frame(s) "
+                f"({', '.join(map(str, res.summary['collision_exact_frames']))}); their contacts were located at every "
+                "evaluation from then on")
         if res.summary.get("collision_exact_windows"):
             log(f"fit: held contacts did not settle {len(res.summary['collision_exact_windows'])} window(s) "
                 f"({', '.join(res.summary['collision_exact_windows'])}); fitted again with exact contacts")
