@@ -43,6 +43,18 @@ def test_body_rig_is_anny_exactly(model):
     # scattered (frame, vertex) pairs, as the collision term reads them
     f, v = torch.tensor([2, 0, 1, 2]), torch.tensor([13000, 7, 7, 0])
     assert torch.allclose(rig.skin_at(mine, f, v), ref.vertices[f, v], atol=1e-5)
+    # ... with the gradient of the whole mesh's skinning, fingers opened (a finger vertex among them)
+    A.requires_grad_(True)
+    opening = torch.tensor([[0.5, 1.0, 0.0, -0.3]] * 3, requires_grad=True)
+    finger = int(np.flatnonzero(model.vertex_bone() == model.bone_index("finger2-3.L"))[0])
+    f, v = torch.tensor([2, 0, 1, 2, 1]), torch.tensor([13000, 7, 7, 0, finger])
+    w = torch.randn(len(f), 3)
+    posed = rig.pose(A, transl, False, opening)
+    ga = torch.autograd.grad((rig.skin_at(posed, f, v) * w).sum(), (A, opening))
+    gb = torch.autograd.grad((rig.pose(A, transl, True, opening).vertices[f, v] * w).sum(), (A, opening))
+    assert ga[1].abs().max() > 1e-3
+    for x, y in zip(ga, gb):
+        assert torch.allclose(x, y, atol=1e-5)
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
 
 
