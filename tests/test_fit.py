@@ -375,8 +375,9 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
     a held round stalls (here the held term is made to push nothing in frame 0, so round 1 leaves it
     as deep as it found it), the frames it left deeper than 75 % of the window's deepest start have
     their contacts located at every evaluation (``__call__``) from the next round on, the others stay
-    held. A window the rounds leave unsettled (here: one round only, pushing nothing anywhere) is
-    fitted again from its skeleton pass the exact way: the same bodies as a fit that never holds the
+    held. A window the rounds leave unsettled (here: one round only) is fitted again from its skeleton
+    pass with those frames and the ones left too deep exact, the rest held; where that is every frame
+    (the held term pushing nothing anywhere) it gives the same bodies as a fit that never holds the
     contacts. Stalled rounds, exact frames and refitted windows are listed."""
     from dualhuman_builder.fit import collision
 
@@ -416,6 +417,18 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
     assert s["collision_exact_frames"] == [0] and s["collision_exact_windows"] == []
     assert calls["exact"] > 0 and calls["exact rows"] == calls["exact"]  # frame 0 alone, located every time
     assert s["max_penetration_after_mm"] <= 1000 * cfg.collision_tolerance_m
+
+    # one round only, frame 0's held term barely pushing: the round leaves frame 0 deep (without
+    # stalling) and frame 1 settled, and the window is fitted again with frame 0 alone exact
+    def weak_in_frame_0(self, lin, points, device=None, dtype=torch.float32):
+        loss = real_linear(self, lin, points, device, dtype)
+        return loss * torch.tensor([0.02, 1.0]) if lin.B == 2 else loss
+
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", count("held", weak_in_frame_0))
+    calls.update(held=0, exact=0, **{"exact rows": 0})
+    once = fit_actors(model, inputs, 15.0, dataclasses.replace(cfg, sigma_slide_m=1e3, collision_rounds=1))
+    assert once.summary["collision_exact_windows"] == ["frames 0-1"] and once.summary["collision_exact_frames"] == []
+    assert calls["exact"] > 0 and calls["exact rows"] == calls["exact"]
 
     def pushes_nothing(self, lin, points, device=None, dtype=torch.float32):
         return real_linear(self, lin, points, device, dtype) * 0.0

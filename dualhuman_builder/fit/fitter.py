@@ -46,8 +46,8 @@ leaves the window's deepest frame deeper than 75 % of where it started (and over
 stalled: from the next round on, the frames it left that deep have their contacts located at every
 evaluation (exact), the others stay held (``collision_held_stalled``, ``collision_exact_frames`` in
 the summary). A window the rounds leave unsettled all the same is fitted again from its skeleton
-pass with every contact located at every evaluation (``collision_exact_windows``), and keeps the
-less deep of the two answers. On the fit benchmark's hug one frame in each of two windows went
+pass with those frames and every frame they left over the tolerance located at every evaluation,
+the rest held (``collision_exact_windows``), and keeps the less deep of the two answers. On the fit benchmark's hug one frame in each of two windows went
 exact and both windows settled: the fit took 19 s instead of 40 with those windows refitted whole
 (the rule before 2026-11-24); the accuracy benchmark's dance turns still refit one window each.
 A collision pass whose line search steps to non-finite corrections is undone and listed in the
@@ -124,10 +124,11 @@ class FitConfig:
     collision_restart: bool = True
     #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
     #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
-    #: contacts' positions only); a window whose held rounds do not settle is fitted again from its
-    #: skeleton pass with the contacts located at every evaluation. False: always the latter (the fit
-    #: benchmark's hug: 1.2x slower; the accuracy benchmark's twelve takes: 1.25x, its hugs 2.6x, and
-    #: about as fast where the held rounds stall, as on its dance turns: ``--compare-exact``)
+    #: contacts' positions only), except in frames where a held round stalled; a window the rounds do
+    #: not settle is fitted again from its skeleton pass with those frames and the ones left too deep
+    #: located at every evaluation (see the module docstring). False: every contact located at every
+    #: evaluation (the fit benchmark's hug: 2.7x slower on 2026-11-24; 1.25x over the accuracy
+    #: benchmark's twelve takes on 2026-11-23, before stalls went exact frame by frame: ``--compare-exact``)
     collision_hold_contacts: bool = True
     #: vertices outside the other body within this distance (m) are held with the contacts, so the
     #: held term sees them cross in
@@ -452,14 +453,19 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
             passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
             # held contacts first (cheap evaluations), except in the frames where a held round stalled: from then
             # on those are located at every evaluation. A window the held rounds leave unsettled is fitted again
-            # from its skeleton pass with every contact located at every evaluation, and keeps the better answer
+            # from its skeleton pass with those frames and the ones left too deep located at every evaluation,
+            # and keeps the better answer
             modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
+            # window rows whose contacts are located at every evaluation
+            exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(s1 - s0)
             held_best = None
             for mode in modes if len(hit) else []:
                 best, restarts, settled = start, 0, False
                 hit = np.flatnonzero(start[2] > 0)
-                exact = np.arange(s1 - s0) if mode == "exact" else np.zeros(0, np.int64)
                 if mode == "exact" and len(modes) == 2:
+                    # exact in the frames the held rounds located exactly and those they left over the
+                    # tolerance (the dance turns' windows: 24 and 19 s instead of 38 and 26 with all of them)
+                    exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
                     _restore(params, start[1])
                     exact_windows.append(f"frames {s0}-{s1 - 1}")
                     located = None
