@@ -26,8 +26,9 @@ window's collision passes start with one over the openings alone, then the full 
 The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
 rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a
 48-frame window's energy and gradient, both actors, in ~7 ms instead of ~21 through the whole
-rig); the full meshes are skinned only for frames whose bodies penetrate after the skeleton pass (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`),
-and only those frames get the collision pass (their full meshes skinned without gradient, to find the
+rig); the full meshes are skinned only for frames whose bodies penetrate after the skeleton pass
+(measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`), and only those frames get
+the collision pass (their full meshes skinned without gradient, to find the
 contacts; the few thousand (frame, vertex) pairs the loss reads are skinned again with it,
 :meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`). Frames far apart pay nothing. The collision term is
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
@@ -47,9 +48,11 @@ stalled: from the next round on, the frames it left that deep have their contact
 evaluation (exact), the others stay held (``collision_held_stalled``, ``collision_exact_frames`` in
 the summary). A window the rounds leave unsettled all the same is fitted again from its skeleton
 pass with those frames and every frame they left over the tolerance located at every evaluation,
-the rest held (``collision_exact_windows``), and keeps the less deep of the two answers. On the fit benchmark's hug one frame in each of two windows went
-exact and both windows settled: the fit took 19 s instead of 40 with those windows refitted whole
-(the rule before 2026-11-24); the accuracy benchmark's dance turns still refit one window each.
+the rest held (``collision_exact_windows``), and keeps the less deep of the two answers. On the
+fit benchmark's hug one frame in each of two windows went exact and both windows settled: the fit
+took 19 s instead of 40 with those windows refitted whole from their skeleton pass, every contact
+exact (the rule before 2026-11-24; traced with a script outside the repo); the accuracy
+benchmark's dance turns still refit windows (two and one in its last run).
 A collision pass whose line search steps to non-finite corrections is undone and listed in the
 summary (``collision_diverged``); so is one that leaves the window's deepest frame deeper than the
 best pass before it (``collision_worsened``):
@@ -262,7 +265,8 @@ class _Actor:
                             np.concatenate([soles["L"], soles["R"]]))  # fmt: skip
         self._nj, self._nk = len(self.joints), len(self.trk_bone)
         with torch.no_grad():
-            heads, sole = self.skeleton(torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3), torch.zeros(1, 3, device=dev))
+            eye = torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3)
+            heads, sole = self.skeleton(eye, torch.zeros(1, 3, device=dev))
             ankle_h = heads[2][0, :, 1].cpu().numpy()
             sole_h = np.array([sole[0, : self.n_sole, 1].min().item(), sole[0, self.n_sole :, 1].min().item()])
         ankles = _interp_rows(np.asarray(inp.ankles, np.float64).reshape(len(valid), -1), valid).reshape(-1, 2, 3)
@@ -489,7 +493,8 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
                             _, located = check()
                         held = located.subset(hit[rows_h])
 
-                    def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h, rows_x=rows_x):
+                    def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
+                                 rows_x=rows_x):  # fmt: skip
                         if not _finite(params):
                             raise _Diverged
                         copt.zero_grad()

@@ -232,7 +232,8 @@ class BodyRig:
         A_s E_s`` and a skinned vertex ``(sum_k w_k) transl + sum_s A_s G_s``, with ``E``, ``G``
         constant ``(S, 3)`` per bone and vertex (see :meth:`add_linear`): ``(B, 3, 3S) @ (3S, Jn + n)``
         instead of per-bone rotations, a tree walk and a nine-bone blend per vertex (the fitter's
-        skeleton terms read only these: ~4x faster per evaluation)."""
+        skeleton terms read only these: a 48-frame window's energy and gradient, both actors,
+        21 -> 6.6 ms)."""
         mat, wsum, nb = self._linear[name]
         B = seg_rot.shape[0]
         out = (seg_rot.transpose(1, 2).reshape(B, 3, -1) @ mat).transpose(1, 2)  # (B, Jn + n, 3)
