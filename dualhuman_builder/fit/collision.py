@@ -597,11 +597,19 @@ class CollisionTerm:
         winding = self.sign == "winding"
         if self._pool and self._pool_points[0].shape[0] != V:
             self._pool, self._pool_points = [], []
-        while len(self._pool) < M:
-            pts = wp.array(points[len(self._pool)], dtype=wp.vec3, device="cpu")
-            idx = wp.array(self.obstacle_faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")
-            self._pool.append(wp.Mesh(points=pts, indices=idx, support_winding_number=winding))
-            self._pool_points.append(pts)
+        n0 = len(self._pool)
+        if M > n0:  # new meshes, built at these rows' points: a BVH build is ~14 ms, in threads (ctypes)
+            idx = wp.array(self.obstacle_faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")  # shared
+            new: list = [None] * (M - n0)
+
+            def build(rows):
+                for i in rows:
+                    pts = wp.array(points[i], dtype=wp.vec3, device="cpu")
+                    new[i - n0] = (wp.Mesh(points=pts, indices=idx, support_winding_number=winding), pts)
+
+            self._threaded(build, np.arange(n0, M), 4)
+            self._pool += [m for m, _ in new]
+            self._pool_points += [p for _, p in new]
         todo = np.arange(M) if only is None else np.asarray(only)
 
         def refit(rows):
