@@ -231,6 +231,9 @@ class _Contacts:
     depth: np.ndarray
     face: np.ndarray
     bary: np.ndarray
+    #: the index tensors :meth:`CollisionTerm._assemble` builds from the above, kept for the next
+    #: evaluation of the same contacts (a held pass evaluates them a dozen times)
+    assembly: tuple | None = None
 
 
 @dataclass
@@ -881,27 +884,31 @@ class CollisionTerm:
         M = len(c.frame)
         if M == 0:
             return out
-        # side 0: b's vertices (body 1) inside a (body 0); side 1: a's inside b
-        tri = self.obstacle_faces[c.face]  # (M, 3)
-        q_idx = np.empty(M, np.int64)  # row of each contact's query point in `pos`
-        o_idx = np.empty((M, 3), np.int64)  # rows of its closest triangle's corners
-        pos, offset = [], 0
-        for body in (0, 1):
-            mq, mo = c.side == 1 - body, c.side == body
-            pair = np.concatenate([c.frame[mq] * V + c.vert[mq], (c.frame[mo, None] * V + tri[mo]).ravel()])
-            if not len(pair):
-                continue
-            uniq, inv = np.unique(pair, return_inverse=True)
-            nq = int(mq.sum())
-            q_idx[mq] = offset + inv[:nq]
-            o_idx[mo] = offset + inv[nq:].reshape(-1, 3)
-            u = torch.as_tensor(uniq, device=dev)
-            pos.append(points(body, u // V, u % V).to(dtype))
-            offset += len(uniq)
-        pos = torch.cat(pos)
-        p = pos[torch.as_tensor(q_idx, device=dev)]  # (M, 3)
-        x = pos[torch.as_tensor(o_idx, device=dev)]  # (M, 3, 3)
-        w = torch.as_tensor(c.bary, device=dev, dtype=dtype)
+        key = (str(dev), dtype)
+        if c.assembly is None or c.assembly[0] != key:
+            # side 0: b's vertices (body 1) inside a (body 0); side 1: a's inside b
+            tri = self.obstacle_faces[c.face]  # (M, 3)
+            q_idx = np.empty(M, np.int64)  # row of each contact's query point in `pos`
+            o_idx = np.empty((M, 3), np.int64)  # rows of its closest triangle's corners
+            reads, offset = [], 0  # per body: the (frame, vertex) pairs read, once each
+            for body in (0, 1):
+                mq, mo = c.side == 1 - body, c.side == body
+                pair = np.concatenate([c.frame[mq] * V + c.vert[mq], (c.frame[mo, None] * V + tri[mo]).ravel()])
+                if not len(pair):
+                    continue
+                uniq, inv = np.unique(pair, return_inverse=True)
+                nq = int(mq.sum())
+                q_idx[mq] = offset + inv[:nq]
+                o_idx[mo] = offset + inv[nq:].reshape(-1, 3)
+                u = torch.as_tensor(uniq, device=dev)
+                reads.append((body, u // V, u % V))
+                offset += len(uniq)
+            c.assembly = (key, reads, torch.as_tensor(q_idx, device=dev), torch.as_tensor(o_idx, device=dev),
+                          torch.as_tensor(c.bary, device=dev, dtype=dtype), torch.as_tensor(c.frame, device=dev))  # fmt: skip
+        _, reads, q_t, o_t, w, frame_t = c.assembly
+        pos = torch.cat([points(body, f, v).to(dtype) for body, f, v in reads])
+        p = pos[q_t]  # (M, 3)
+        x = pos[o_t]  # (M, 3, 3)
         closest = (w[:, :, None] * x).sum(dim=1)
         diff = closest - p
         if normals is None:  # every contact here is inside
@@ -910,7 +917,7 @@ class CollisionTerm:
         else:
             n = torch.as_tensor(normals, device=dev, dtype=dtype)
         depth = (diff * n).sum(dim=1).clamp_min(0.0)
-        out = out.index_add(0, torch.as_tensor(c.frame, device=dev), self.rho(depth))
+        out = out.index_add(0, frame_t, self.rho(depth))
         return out / (2 * V)
 
     @staticmethod
