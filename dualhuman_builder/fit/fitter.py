@@ -130,7 +130,7 @@ class FitConfig:
     #: contacts' positions only), except in frames where a held round stalled; a window the rounds do
     #: not settle is fitted again from its skeleton pass with those frames and the ones left too deep
     #: located at every evaluation (see the module docstring). False: every contact located at every
-    #: evaluation (the fit benchmark's hug: 2.7x slower on 2026-11-24; 1.25x over the accuracy
+    #: evaluation (the fit benchmark's hug: 2.7-3.1x slower on 2026-11-24; 1.25x over the accuracy
     #: benchmark's twelve takes on 2026-11-23, before stalls went exact frame by frame: ``--compare-exact``)
     collision_hold_contacts: bool = True
     #: vertices outside the other body within this distance (m) are held with the contacts, so the
