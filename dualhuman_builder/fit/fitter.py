@@ -263,7 +263,6 @@ class _Actor:
         foot = self.rig.segment_bones[[MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]
         self.rig.add_linear("skeleton", torch.cat([self.joints, self.trk_bone, foot]).cpu().numpy(),
                             np.concatenate([soles["L"], soles["R"]]))  # fmt: skip
-        self._nj, self._nk = len(self.joints), len(self.trk_bone)
         with torch.no_grad():
             eye = torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3)
             heads, sole = self.skeleton(eye, torch.zeros(1, 3, device=dev))
@@ -272,19 +271,24 @@ class _Actor:
         ankles = _interp_rows(np.asarray(inp.ankles, np.float64).reshape(len(valid), -1), valid).reshape(-1, 2, 3)
         self.stance = torch.as_tensor(stance_mask(ankles, fps, ankle_h - sole_h, cfg), device=dev)
 
+    def rotations(self, delta, sl):
+        """Driven-bone rotations ``(n, 23, 3, 3)`` of timeline frames ``sl`` with the corrections
+        ``delta (n, 23, 3)`` (world-frame rotation vectors on the retarget)."""
+        return roma.rotvec_to_rotmat(delta) @ self.target[sl]
+
     def skeleton(self, rot, transl):
         """What the skeleton terms read of driven-bone rotations ``rot (n, 23, 3, 3)`` and root
         positions ``transl (n, 3)`` (metres): the heads ``((n, 22, 3) joints, (n, K, 3) the trackers'
         bones, (n, 2, 3) the feet's)`` and the sole vertices ``(n, 2 n_sole, 3)`` (left then right)."""
         heads, soles = self.rig.pose_linear(rot, transl, "skeleton")
-        nj, nk = self._nj, self._nk
+        nj, nk = len(self.joints), len(self.trk_bone)
         return (heads[:, :nj], heads[:, nj : nj + nk], heads[:, nj + nk :]), soles
 
     def pose(self, delta, dtransl, sl, vertices=True, opening=None):
         """Bones (and ``vertices``) of timeline frames ``sl`` (a slice or an index tensor) with the
         corrections ``delta (n, 23, 3)`` rotation vectors and ``dtransl (n, 3)`` metres, and the
         hand openings ``opening (n, 4)`` (None: relaxed hands)."""
-        rot = roma.rotvec_to_rotmat(delta) @ self.target[sl]
+        rot = self.rotations(delta, sl)
         return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices, opening)
 
 
@@ -292,7 +296,7 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
     """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles, openings) of the two
     frames before ``sl`` (fixed, from the previous window) or None. Returns (energy, rot): ``rot (n,
     23, 3, 3)`` the driven bones' rotations (for the collision passes' full poses)."""
-    rot = roma.rotvec_to_rotmat(delta) @ act.target[sl]
+    rot = act.rotations(delta, sl)
     (joints, trk_heads, _), soles = act.skeleton(rot, act.transl0[sl] + dtransl)
     valid = act.valid[sl].float()
     s_o = np.radians(cfg.sigma_orientation_deg)
@@ -395,7 +399,7 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
             for k, a in enumerate(acts):
                 if ctx_n:
                     csl = slice(s0 - ctx_n, s0)
-                    rot = roma.rotvec_to_rotmat(deltas[k][csl]) @ a.target[csl]
+                    rot = a.rotations(deltas[k][csl], csl)
                     (joints, _, _), sole = a.skeleton(rot, a.transl0[csl] + dtransl[k][csl])
                     ctxs.append((joints, sole, openings[k][csl]))
                 else:
@@ -468,7 +472,8 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
                 hit = np.flatnonzero(start[2] > 0)
                 if mode == "exact" and len(modes) == 2:
                     # exact in the frames the held rounds located exactly and those they left over the
-                    # tolerance (the dance turns' windows: 24 and 19 s instead of 38 and 26 with all of them)
+                    # tolerance (the accuracy benchmark's dance turns: 24 and 19 s instead of 38 and 26 with all
+                    # of them, in a sweep with a script outside the repo)
                     exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
                     _restore(params, start[1])
                     exact_windows.append(f"frames {s0}-{s1 - 1}")
@@ -592,7 +597,7 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     share_after = np.zeros(T)
     for k, a in enumerate(acts):
         with torch.no_grad():
-            rot = roma.rotvec_to_rotmat(deltas[k]) @ a.target
+            rot = a.rotations(deltas[k], slice(None))
             transl = a.transl0 + dtransl[k]
             pose = a.rig.local_pose(rot, openings[k]).cpu().numpy()
             ang = np.degrees(deltas[k].norm(dim=-1).mean(-1).cpu().numpy())
