@@ -748,8 +748,12 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 @click.option("--threads", type=click.IntRange(min=0), default=1, show_default=True,
               help="torch CPU threads during the fit. 1 makes a fit of the same take repeat exactly; more can be "
                    "~10-20 % faster but the result then varies from run to run; 0 keeps torch's own setting.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Processes to fit the take's segments on, this one included (1: only this one). Default: one per "
+                   "CPU, no more than there are segments (two windows each) or than leave ~2 GiB of available memory "
+                   "each; 1 on a GPU. The result does not depend on it.")
 def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool, no_collision: bool,
-        relaxed_hands: bool, exact_contacts: bool, window: int, device: str, threads: int):  # fmt: skip
+        relaxed_hands: bool, exact_contacts: bool, window: int, device: str, threads: int, workers: int | None):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
@@ -758,7 +762,9 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
     the two bodies. The suit measures no fingers: where a hand lies on the partner, the collision
     term opens its thumb and fingers (between anny's relaxed hand and flat) before it moves any
     bone. Writes bodies.npz, shapes.json, frames.npz and report.html / report.png.
-    Runs `sync` and `fuse` first if needed.
+    Runs `sync` and `fuse` first if needed. The take is fitted in segments of two windows, on
+    --workers processes at once; consecutive segments are cross-faded over the frames they share
+    (and a seam whose blend leaves the bodies in each other is fitted again).
 
     Example:  dualhuman fit WS --take T001
     """
@@ -770,7 +776,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
                     window=window, device=device, torch_threads=threads)  # fmt: skip
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
-                      suit_chain=not no_suit_chain)  # fmt: skip
+                      suit_chain=not no_suit_chain, workers=workers)  # fmt: skip
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
 
 

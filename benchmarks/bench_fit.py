@@ -15,7 +15,12 @@ the default: ``FitConfig.collision_hold_contacts``), and with it located at ever
 (``exact``, the baseline), median of --runs each, in this process; the held/exact ratio; anny
 forward+backward bodies/s at batch 2 x window, the fit/anny ratios, and the process's peak RSS.
 torch runs on ``--threads`` CPU threads (default ``FitConfig.torch_threads``, 1: fits that repeat
-exactly) for the fits and anny's rate alike.
+exactly) for the fits and anny's rate alike. The take's segments are fitted on ``--workers``
+processes (this one included; ``auto``: the fit's default, one per CPU; a comma-separated list runs
+each mode once per value and prints the ratios to the first). Peak RSS is this process's and the
+largest worker's.
+
+    .venv/bin/python benchmarks/bench_fit.py --minutes 1 --collision held --workers 1,auto
 """
 
 from __future__ import annotations
@@ -77,9 +82,14 @@ def main():
                          "(held, the default fit), with them located at every evaluation (exact), or all three (default)")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads for the fit and for anny's raw rate (default: FitConfig.torch_threads, 1)")
+    ap.add_argument("--workers", default="auto",
+                    help="processes to fit the take's segments on, this one included: a number or auto (the fit's "
+                         "default), or a comma-separated list to compare (default: auto)")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.fit.fitter import FitConfig, fit_actors
+    from dualhuman_builder.fit.fitter import FitConfig, fit_actors, fit_workers, layout
+
+    workers = [None if w.strip() == "auto" else int(w) for w in args.workers.split(",")]
 
     model = get_body_model(args.device)
     inp = inputs(get_body_model(), args.minutes, args.fps)
@@ -94,22 +104,28 @@ def main():
              "exact": "with collision term, contacts located at every evaluation"}
     for mode in modes:
         cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads)
-        rates = []
-        for _ in range(args.runs):
-            res = fit_actors(model, inp, args.fps, cfg)
-            rates.append(res.summary["frame_pairs_per_s"])
-        medians[mode] = statistics.median(rates)
-        s = res.summary
-        extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
-                 f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
-        print(f"fit {names[mode]}: {medians[mode]:.1f} frame pairs/s (median of {args.runs}{extra})", flush=True)
-    if "held" in medians and "exact" in medians:
-        print(f"held / exact: {medians['held'] / medians['exact']:.2f}x")
+        for w in workers:
+            n = fit_workers(len(layout(T, cfg)), cfg) if w is None else w
+            rates = []
+            for _ in range(args.runs):
+                res = fit_actors(model, inp, args.fps, cfg, workers=n)
+                rates.append(res.summary["frame_pairs_per_s"])
+            medians[mode, w] = statistics.median(rates)
+            s = res.summary
+            extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
+                     f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
+            ratio = f", {medians[mode, w] / medians[mode, workers[0]]:.2f}x the first" if w != workers[0] else ""
+            print(f"fit {names[mode]}, {n} process{'es' if n > 1 else ''}: {medians[mode, w]:.1f} frame pairs/s "
+                  f"(median of {args.runs}{extra}){ratio}", flush=True)  # fmt: skip
+    for w in workers:
+        if ("held", w) in medians and ("exact", w) in medians:
+            print(f"held / exact ({w or 'auto'} workers): {medians['held', w] / medians['exact', w]:.2f}x")
     cfg = FitConfig()
     rate = anny_rate(model, 2 * cfg.window, args.runs + 2)
     print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
-    print("ratio fit / anny raw: " + ", ".join(f"{medians[m] / (rate / 2):.3f} {m}" for m in medians))
-    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    print("ratio fit / anny raw: " + ", ".join(f"{v / (rate / 2):.3f} {m} ({w or 'auto'} workers)" for (m, w), v in medians.items()))
+    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB this process, "
+          f"{resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024:.0f} MB the largest worker")
 
 
 if __name__ == "__main__":

@@ -290,9 +290,9 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch, hands):
 
     monkeypatch.setattr(collision.CollisionTerm, "__call__", poisoned)
     res = fit_actors(model, inputs, 15.0, cfg)
-    # windows of 4 frames overlapping by 4 start at every frame: each one's first pass is undone
+    # one window (a 4-frame window overlapping by 4 would only repeat it): its first pass is undone
     first = "the hands' collision pass" if hands else "collision round 1"
-    assert res.summary["collision_diverged"] == [f"frames {s}-3, {first}" for s in range(T)]
+    assert res.summary["collision_diverged"] == [f"frames 0-3, {first}"]
     for track in res.sequence.actors:
         assert np.isfinite(np.asarray(track.pose)).all() and np.isfinite(np.asarray(track.transl)).all()
     # undone: the bodies are where the skeleton pass left them, still overlapping
@@ -528,3 +528,126 @@ def test_the_fit_runs_on_the_configured_torch_threads_and_restores_the_callers(m
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("window,overlap,per", [(48, 4, 2), (4, 1, 1), (6, 2, 3), (48, 4, 0)])
+def test_the_take_is_cut_into_windows_and_segments_that_cover_it(window, overlap, per):
+    """Windows cover every frame, each starting inside the one before and none only repeating the
+    one before's last frames; groups of ``segment_windows`` windows form segments (0: one), and a
+    segment's first window starts ``overlap`` frames early, so consecutive segments share ``2
+    overlap`` frames."""
+    from dualhuman_builder.fit.fitter import layout
+
+    cfg = FitConfig(window=window, overlap=overlap, segment_windows=per)
+    for T in (2, 5, 47, 48, 49, 92, 93, 180, 181, 500):
+        segments = layout(T, cfg)
+        wins = [w for seg in segments for w in seg]
+        assert [w[0] for w in wins] == list(range(len(wins)))
+        assert wins[0][1] == 0 and wins[-1][2] == T
+        assert all(s1 - s0 <= window + overlap for _, s0, s1 in wins)
+        for (_, a0, a1), (_, b0, b1) in zip(wins, wins[1:]):
+            assert a0 < b0 <= a1 and b1 > a1
+        if per == 0:
+            assert len(segments) == 1
+            continue
+        assert all(1 <= len(seg) <= per for seg in segments) and len(segments) == -(-len(wins) // per)
+        for prev, seg in zip(segments, segments[1:]):
+            shared = prev[-1][2] - seg[0][1]
+            assert shared == min(2 * overlap, prev[-1][2] - prev[-1][1]), (T, prev, seg)
+
+
+def test_segments_are_cross_faded_over_the_frames_they_share():
+    from dualhuman_builder.fit.fitter import _join, _Part
+
+    def part(start, n, value):
+        full = lambda *s: np.full((n,) + s, value, np.float32)  # noqa: E731
+        return _Part(start, [full(23, 3)], [full(3)], [full(4)], np.full(n, value), np.full(n, value))
+
+    j = _join([part(0, 6, 0.0), part(2, 6, 1.0), part(7, 3, 3.0)], 10)
+    want = np.array([0, 0, 0.2, 0.4, 0.6, 0.8, 1, 1 + 2 / 2, 3, 3])
+    for key in ("delta", "dtransl", "opening"):
+        assert j[key][0].shape[0] == 10 and j[key][0].dtype == np.float32
+        np.testing.assert_allclose(j[key][0].reshape(10, -1), np.repeat(want[:, None], j[key][0][0].size, 1), atol=1e-6)
+    np.testing.assert_array_equal(j["pen_before"], [0, 0, 1, 1, 1, 1, 1, 3, 3, 3])  # the later segment's
+
+
+def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(model):
+    """Two segments that leave actor b on opposite sides of a (30 cm to its left in one, 50 cm to
+    its right in the other): the blend of their shared frames takes b through a. That seam is
+    fitted again from the blend, over the shared frames and ``overlap`` more on each side, with the
+    frames around it fixed: afterwards no frame is deeper than the tolerance, and the frames outside
+    that window are untouched."""
+    from dualhuman_builder.fit.fitter import _Fitter, _join, _mend_seams, _Part
+
+    T = 12
+    cfg = FitConfig(window=4, overlap=1, iterations=3, collision_iterations=4, hand_opening=False)
+    fitter = _Fitter(model, _overlapping_pair(T, dx=0.5), 15.0, cfg)
+
+    def part(start, n, bx):
+        z = lambda *s: np.zeros((n,) + s, np.float32)  # noqa: E731
+        bt = z(3)
+        bt[:, 0] = bx
+        return _Part(start, [z(23, 3), z(23, 3)], [z(3), bt], [z(4), z(4)], np.zeros(n), np.zeros(n))
+
+    def depths(j):
+        vs = [a.pose(*(torch.as_tensor(j[key][k]) for key in ("delta", "dtransl")), slice(0, T), True,
+                     torch.as_tensor(j["opening"][k]))[1].vertices for k, a in enumerate(fitter.acts)]  # fmt: skip
+        return fitter.collide.penetration(vs[0], vs[1])["max_depth_m"]
+
+    parts = [part(0, 7, 0.0), part(5, 7, -0.8)]  # shared: frames 5, 6
+    j = _join(parts, T)
+    before = {key: [x.copy() for x in j[key]] for key in ("delta", "dtransl", "opening")}
+    d = depths(j)
+    assert d[[0, 1, 2, 3, 4, 7, 8, 9, 10, 11]].max() == 0 and d[5:7].max() > 0.02  # the blend: b through a
+    said = []
+    assert _mend_seams(fitter, parts, j, said.append) == ["frames 4-7"]
+    assert any("seam frames 5-6" in m and "mm deep after the cross-fade" in m for m in said), said
+    assert depths(j).max() <= cfg.collision_tolerance_m
+    for key in before:
+        for x, y in zip(before[key], j[key]):
+            np.testing.assert_array_equal(x[:4], y[:4])
+            np.testing.assert_array_equal(x[8:], y[8:])
+            assert not np.array_equal(x[4:8], y[4:8]) or key == "opening"
+
+
+def test_fit_workers_follow_cpus_segments_memory_and_the_device():
+    from dualhuman_builder.fit.fitter import WORKER_BYTES, fit_workers
+
+    cfg = FitConfig()
+    plenty = 64 * WORKER_BYTES
+    assert fit_workers(5, cfg, cpus=2, available_bytes=plenty) == 2
+    assert fit_workers(5, cfg, cpus=16, available_bytes=plenty) == 5
+    assert fit_workers(1, cfg, cpus=16, available_bytes=plenty) == 1
+    assert fit_workers(5, cfg, cpus=16, available_bytes=3 * WORKER_BYTES + 1) == 3
+    assert fit_workers(5, cfg, cpus=16, available_bytes=WORKER_BYTES // 2) == 1
+    assert fit_workers(5, FitConfig(device="cuda"), cpus=16, available_bytes=plenty) == 1
+
+
+def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeypatch):
+    """The same take fitted in this process alone, with one worker process beside it, and with a
+    worker that cannot start (this process then fits every segment itself and says why): the same
+    bodies to the bit, collision passes included, and every window's progress line arrives."""
+    import sys
+
+    T = 10
+    inputs = _overlapping_pair(T, dx=0.1)
+    cfg = FitConfig(window=4, overlap=1, segment_windows=1, iterations=3, collision_iterations=3, collision_rounds=2,
+                    hand_opening=False)  # fmt: skip
+    runs, said = {}, {}
+    for name, workers in (("here", 1), ("workers", 2), ("broken", 2)):
+        said[name] = []
+        with monkeypatch.context() as mp:
+            if name == "broken":
+                mp.setattr(sys, "executable", "/bin/false")
+            runs[name] = fit_actors(model, inputs, 15.0, cfg, progress=said[name].append, workers=workers)
+    s = runs["here"].summary
+    assert s["segments"] == 3 and s["processes"] == 1 and s["collision_frames"] > 0
+    assert runs["workers"].summary["processes"] == 2 and runs["broken"].summary["processes"] == 2
+    for name in ("workers", "broken"):
+        for a, b in zip(runs["here"].sequence.actors, runs[name].sequence.actors):
+            np.testing.assert_array_equal(a.pose, b.pose)
+            np.testing.assert_array_equal(a.transl, b.transl)
+        for key in ("collision_frames", "max_penetration_before_mm", "max_penetration_after_mm", "seams_fitted_again"):
+            assert runs[name].summary[key] == s[key], key
+        assert sorted(m for m in said[name] if m.startswith("window")) == sorted(m for m in said["here"] if m.startswith("window"))
+    assert any(m.startswith("WARNING: fit worker 1 exited with status 1") for m in said["broken"]), said["broken"]

@@ -31,6 +31,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from dualhuman_builder.paths import child_env
+
 # frames per worker below which a worker's start-up (~1 s) costs more than it saves
 MIN_FRAMES_PER_WORKER = 48
 
@@ -63,9 +65,7 @@ def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.nd
             del mm
         with open(tmp / "topology.pkl", "wb") as f:
             pickle.dump(topo, f)
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parents[2])  # the folder holding the package
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env = child_env()
         for k in range(workers):
             cmd = [sys.executable, "-m", "dualhuman_builder.contacts.workers", str(tmp), str(k), str(workers),
                    repr(float(threshold)), repr(float(band))]  # fmt: skip

@@ -299,7 +299,11 @@ class CollisionTerm:
     vertex counts as penetrating in the diagnostics; ``grid_res`` cells per axis of ``"grid"``;
     ``threads`` query threads (default: CPU count, at most 8); ``flood_min`` far candidates from
     which the sign flood fill replaces one full query each; ``max_memo`` frames kept for the reuse
-    across calls that ``keys`` enables (~0.5 MB each for anny). See the module
+    across calls that ``keys`` enables (~0.5 MB each for anny); ``bvh_points`` optional ``(V, 3)``
+    points (e.g. a rest pose) every pooled mesh's BVH is built over before it is refit to a call's
+    bodies: a refit keeps the tree a build made, and which of two equally close faces a query
+    returns depends on that tree, so without them the answers depend (by rounding) on which frames
+    first built each pooled mesh; with them only on each call's bodies. See the module
     docstring.
     """
 
@@ -321,6 +325,7 @@ class CollisionTerm:
         threads: int | None = None,
         flood_min: int = 1500,
         max_memo: int = 128,
+        bvh_points=None,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -384,6 +389,10 @@ class CollisionTerm:
         # query points: the vertices of that surface; its undirected edges carry the sign flood fill
         self.edges = np.unique(e, axis=0)
         self._surface_mask: np.ndarray | None = None
+        bp = None if bvh_points is None else np.ascontiguousarray(np.asarray(bvh_points, dtype=np.float32))
+        if bp is not None and (bp.ndim != 2 or bp.shape[1] != 3 or len(bp) < self.num_vertices_min or not np.isfinite(bp).all()):
+            raise ValueError(f"bvh_points must be finite (V, 3) points with V >= {self.num_vertices_min}, got shape {bp.shape}")
+        self._bvh_points = bp
         self._pool: list[wp.Mesh] = []
         self._pool_points: list[wp.array] = []
         self._executor: ThreadPoolExecutor | None = None
@@ -606,9 +615,11 @@ class CollisionTerm:
             idx = wp.array(self.obstacle_faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")  # shared
             new: list = [None] * (M - n0)
 
+            at = self._bvh_points if self._bvh_points is not None and len(self._bvh_points) == V else None
+
             def build(rows):
                 for i in rows:
-                    pts = wp.array(points[i], dtype=wp.vec3, device="cpu")
+                    pts = wp.array(points[i] if at is None else at, dtype=wp.vec3, device="cpu")
                     new[i - n0] = (wp.Mesh(points=pts, indices=idx, support_winding_number=winding), pts)
 
             self._threaded(build, np.arange(n0, M), 4)

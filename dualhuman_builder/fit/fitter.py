@@ -71,6 +71,7 @@ one and 1.2 mm after a second).
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -112,6 +113,9 @@ class FitConfig:
 
     window: int = 48
     overlap: int = 4
+    #: windows per segment (:func:`layout`): segments are fitted independently (in parallel when there
+    #: are workers) and cross-faded over the ``2 overlap`` frames they share; 0: the whole take is one
+    segment_windows: int = 2
     iterations: int = 30
     collision: bool = True
     collision_iterations: int = 12
@@ -292,9 +296,10 @@ class _Actor:
         return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices, opening)
 
 
-def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float):
-    """Skeleton energy of one actor on frames ``sl``; ``ctx``: (heads, soles, openings) of the two
-    frames before ``sl`` (fixed, from the previous window) or None. Returns (energy, rot): ``rot (n,
+def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float, after=None):
+    """Skeleton energy of one actor on frames ``sl``; ``ctx``: (joints, soles, openings) of up to two
+    frames before ``sl`` (fixed, from the previous window) or None; ``after``: the same of up to two
+    frames after it (a seam's window, :func:`_fit_actors`) or None. Returns (energy, rot): ``rot (n,
     23, 3, 3)`` the driven bones' rotations (for the collision passes' full poses)."""
     rot = act.rotations(delta, sl)
     (joints, trk_heads, _), soles = act.skeleton(rot, act.transl0[sl] + dtransl)
@@ -306,12 +311,17 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
         site = trk_heads + (seg_frame @ act.trk_off[None, :, :, None])[..., 0]
         r = (site - act.trk_pos[sl]).pow(2).sum(-1) * act.trk_valid[sl].float()
         e = e + r.sum() / cfg.sigma_tracker_m**2
+    soles_all, stance, o = soles, act.stance[sl], opening
     if ctx is not None:
         joints = torch.cat([ctx[0], joints], 0)
-        soles_all = torch.cat([ctx[1], soles], 0)
-        stance = torch.cat([act.stance[sl.start - len(ctx[0]) : sl.start], act.stance[sl]], 0)
-    else:
-        soles_all, stance = soles, act.stance[sl]
+        soles_all = torch.cat([ctx[1], soles_all], 0)
+        stance = torch.cat([act.stance[sl.start - len(ctx[0]) : sl.start], stance], 0)
+        o = torch.cat([ctx[2], o], 0)
+    if after is not None:
+        joints = torch.cat([joints, after[0]], 0)
+        soles_all = torch.cat([soles_all, after[1]], 0)
+        stance = torch.cat([stance, act.stance[sl.stop : sl.stop + len(after[0])]], 0)
+        o = torch.cat([o, after[2]], 0)
     if joints.shape[0] >= 3:
         acc = joints[2:] - 2 * joints[1:-1] + joints[:-2]
         s_a = cfg.sigma_accel_m_s2 / fps**2
@@ -331,7 +341,6 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
     lo, hi = OPENING_RANGE
     e = e + opening.pow(2).sum() / cfg.sigma_hand_opening**2
     e = e + (torch.relu(opening - hi).pow(2) + torch.relu(lo - opening).pow(2)).sum() / 0.01**2
-    o = torch.cat([ctx[2], opening], 0) if ctx is not None else opening
     if o.shape[0] >= 3:
         s_h = cfg.sigma_hand_opening_accel_s2 / fps**2
         e = e + (o[2:] - 2 * o[1:-1] + o[:-2]).pow(2).sum() / s_h**2
@@ -339,21 +348,428 @@ def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig
 
 
 def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = FitConfig(),
-               progress: Callable[[str], None] | None = None) -> FitResult:  # fmt: skip
+               progress: Callable[[str], None] | None = None, workers: int | None = None) -> FitResult:  # fmt: skip
     """Fit one or two actors over the whole timeline (see the module docstring), with torch's CPU
-    threads set to ``cfg.torch_threads`` meanwhile."""
+    threads set to ``cfg.torch_threads`` meanwhile.
+
+    The take's segments (:func:`layout`) are fitted on ``workers`` processes, this one included
+    (None: :func:`fit_workers`; 1: all in this process); the others are started as ``python -m
+    dualhuman_builder.fit.workers``. The answer does not depend on it. ``progress`` gets one line
+    per window and collision pass (from any worker, one line at a time)."""
     threads = torch.get_num_threads()
     if cfg.torch_threads > 0:
         torch.set_num_threads(int(cfg.torch_threads))
     try:
-        return _fit_actors(model, inputs, fps, cfg, progress)
+        return _fit_actors(model, inputs, fps, cfg, progress, workers)
     finally:
         torch.set_num_threads(threads)
 
 
-def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, progress) -> FitResult:
-    from dualhuman_builder.fit.collision import CollisionTerm
-    from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
+@dataclass
+class _Part:
+    """One segment's answer, for timeline frames ``start .. start + n - 1``: per actor the corrections
+    ``delta (n, 23, 3)`` (rotation vectors), ``dtransl (n, 3)`` (m) and the hand openings ``opening
+    (n, 4)``; the depth ``pen_before (n,)`` (m) and penetrating share ``share_before (n,)`` after the
+    skeleton pass; and the collision passes' counts and lists (see the summary in
+    :func:`fit_actors`)."""
+
+    start: int
+    delta: list
+    dtransl: list
+    opening: list
+    pen_before: np.ndarray
+    share_before: np.ndarray
+    collided: int = 0
+    rounds: int = 0
+    diverged: list = field(default_factory=list)  # collision passes that stepped to non-finite values (undone)
+    worsened: list = field(default_factory=list)  # collision passes that left the deepest frame deeper than the best (undone)
+    exact_frames: list = field(default_factory=list)  # timeline frames located at every evaluation after a stall
+    exact_windows: list = field(default_factory=list)  # windows the held rounds did not settle, fitted again exactly
+    stalled: list = field(default_factory=list)  # held rounds that stalled
+
+
+def layout(T: int, cfg: FitConfig) -> list[list[tuple[int, int, int]]]:
+    """The windows of a ``T``-frame take, ``(index, first frame, end frame)``, grouped into segments.
+
+    Windows of ``cfg.window`` frames start every ``window - overlap`` frames (none that only repeats
+    the previous one's last frames). Each group of ``cfg.segment_windows`` consecutive windows is a
+    segment (0: the whole take is one): within it each window starts from the previous one's answer
+    in their shared frames and its smoothness terms read the previous one's last two frames; a
+    segment's first window starts from the retarget alone, and ``overlap`` frames earlier than the
+    window layout puts it, so consecutive segments share ``2 overlap`` frames, which
+    :func:`_join` cross-fades. Segments are independent, so they can be fitted in any order and
+    process, with the same answer."""
+    W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
+    starts = [s for s in range(0, T, max(W - O, 1)) if s == 0 or s + O < T]
+    wins = [(i, s, min(s + W, T)) for i, s in enumerate(starts)]
+    m = int(cfg.segment_windows)
+    if m <= 0:
+        return [wins]
+    segments = [wins[i : i + m] for i in range(0, len(wins), m)]
+    for seg in segments[1:]:
+        i, s0, s1 = seg[0]
+        seg[0] = (i, max(s0 - O, 0), s1)
+    return segments
+
+
+def _join(parts: list[_Part], T: int) -> dict:
+    """The segments' answers on the whole timeline: ``delta``/``dtransl``/``opening`` lists (per actor)
+    of ``(T, ...)`` float32 arrays, ``pen_before``/``share_before`` ``(T,)``. In frames two consecutive
+    segments share, the later one's weight rises linearly from ``1 / (n + 1)`` to ``n / (n + 1)`` over
+    the ``n`` shared frames (rotation vectors, translations and openings alike: the corrections are
+    small, so blending rotation vectors is blending rotations); the depths are the later
+    segment's."""
+    first = parts[0]
+    out = {key: [np.zeros((T,) + x.shape[1:], np.float32) for x in getattr(first, key)] for key in ("delta", "dtransl", "opening")}
+    out["pen_before"], out["share_before"] = np.zeros(T), np.zeros(T)
+    end = 0  # frames before this are written
+    for p in parts:
+        a, n = p.start, len(p.pen_before)
+        shared = max(0, min(end, a + n) - a)
+        w = (np.arange(1, shared + 1) / (shared + 1)).astype(np.float32)
+        for key in ("delta", "dtransl", "opening"):
+            for dst, src in zip(out[key], getattr(p, key)):
+                src = np.asarray(src, np.float32)
+                ws = w.reshape(-1, *([1] * (src.ndim - 1)))
+                dst[a : a + shared] = (1 - ws) * dst[a : a + shared] + ws * src[:shared]
+                dst[a + shared : a + n] = src[shared:]
+        out["pen_before"][a : a + n] = p.pen_before
+        out["share_before"][a : a + n] = p.share_before
+        end = max(end, a + n)
+    return out
+
+
+def fit_workers(segments: int, cfg: FitConfig, model=None, cpus: int | None = None, available_bytes: int | None = None) -> int:
+    """Processes a fit of ``segments`` segments runs on when the caller does not say (this one
+    included): one per CPU, one per segment at most, and no more than leave :data:`WORKER_BYTES`
+    of available memory to each; 1 on a GPU (``cfg.device`` other than ``cpu``: one device, and the
+    fit's work already runs in parallel there)."""
+    if torch.device(cfg.device).type != "cpu" or segments <= 1:
+        return 1
+    if cpus is None:
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if available_bytes is None:
+        available_bytes = _available_memory()
+    by_memory = max(1, int(available_bytes // WORKER_BYTES)) if available_bytes else cpus
+    return max(1, min(cpus, segments, by_memory))
+
+
+#: what one more fitting process may need (its peak resident memory on the 1-minute benchmark hug,
+#: ``benchmarks/bench_fit.py``, rounded up)
+WORKER_BYTES = 2 << 30
+
+
+def _available_memory() -> int | None:
+    """MemAvailable from /proc/meminfo in bytes (None where there is none)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _forkable(model) -> bool:
+    """Whether worker processes build the same body model (``get_body_model(cfg.device)``: anny, float32)."""
+    from dualhuman_builder.body.model import BodyModel
+
+    return isinstance(model, BodyModel) and model.dtype == torch.float32
+
+
+def _mend_seams(fitter: _Fitter, parts: list[_Part], joined: dict, say: Callable[[str], None]) -> list[str]:
+    """Fit again, in place in ``joined``, the seams whose cross-fade left the bodies in each other.
+
+    Two segments can leave the bodies apart in their shared frames in different ways (a hand open
+    on one side of the partner's arm in one, curled in the other), and the blend between two such
+    answers can pass through the partner (the fit benchmark's 1-minute hug: 9.8 mm in one of 20
+    seams, from 0.4 and 1.2 mm). A seam whose shared frames the blend leaves deeper than
+    ``collision_tolerance_m``, or with a larger penetrating share than ``collision_share_tolerance``,
+    is fitted again as one window over those frames and ``overlap`` more on each side, starting
+    from the blend, with the two frames on either side fixed as context (so it joins both
+    segments smoothly). Returns the seams fitted again, as ``"frames a-b"``."""
+    cfg, collide, acts = fitter.cfg, fitter.collide, fitter.acts
+    if collide is None:
+        return []
+    O, T = max(int(cfg.overlap), 0), fitter.T
+    mended = []
+    for prev, part in zip(parts[:-1], parts[1:]):
+        b0, e = part.start, prev.start + len(prev.pen_before)  # the shared frames
+        if e <= b0:
+            continue
+        sl = slice(b0, e)
+        with torch.no_grad():
+            vs = [a.pose(*(torch.as_tensor(joined[key][k][sl], device=fitter.dev) for key in ("delta", "dtransl")), sl, True,
+                         torch.as_tensor(joined["opening"][k][sl], device=fitter.dev))[1].vertices for k, a in enumerate(acts)]  # fmt: skip
+            pen = collide.penetration(vs[0], vs[1])
+        if pen["max_depth_m"].max() <= cfg.collision_tolerance_m and pen["share"].max() <= cfg.collision_share_tolerance:
+            continue
+        c0, c1 = max(b0 - O, 0), min(e + O, T)
+        say(f"seam frames {b0}-{e - 1}: {1000 * pen['max_depth_m'].max():.1f} mm deep after the cross-fade")
+        fixed = fitter.segment([(0, c0, c1)], 0, say, init=joined)
+        for key in ("delta", "dtransl", "opening"):
+            for dst, src in zip(joined[key], getattr(fixed, key)):
+                dst[c0:c1] = src
+        mended.append(f"frames {c0}-{c1 - 1}")
+    return mended
+
+
+class _Fitter:
+    """Both actors' tensors and the collision term for one take: fits its segments
+    (:func:`layout`), in this process or in a worker (:mod:`dualhuman_builder.fit.workers`)."""
+
+    def __init__(self, model, inputs: list[ActorInput], fps: float, cfg: FitConfig):
+        from dualhuman_builder.fit.collision import CollisionTerm
+        from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
+
+        self.cfg, self.fps, self.T = cfg, fps, len(inputs[0].seg_rot)
+        soles = sole_vertices(model)
+        self.acts = [_Actor(model, inp, fps, cfg, soles) for inp in inputs]
+        self.dev = torch.device(cfg.device)
+        # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same
+        # answers as the 1 cm default, but vertices keep a known sign over larger moves between L-BFGS
+        # evaluations, so fewer need the sign flood fill (benchmarks/bench_fit_collision.py: 1.1-1.4x, identical depths)
+        # the coincidence guard compares the torsos' centroids: the whole bodies' come within 2 cm in a close hug
+        # the pooled meshes' trees are built over the first actor's rest pose, so that the answers do not
+        # depend on which segments a process fitted before (CollisionTerm's bvh_points)
+        self.collide = None
+        if cfg.collision and len(self.acts) == 2:
+            with torch.no_grad():
+                eye = torch.eye(3, device=self.dev).expand(1, len(MVN_SEGMENTS), 3, 3)
+                rest = self.acts[0].rig.pose(eye, torch.zeros(1, 3, device=self.dev), True).vertices[0].cpu().numpy()
+            self.collide = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01,
+                                         guard_vertices=torso_vertices(model), bvh_points=rest)  # fmt: skip
+
+    def segment(self, wins: list[tuple[int, int, int]], n_windows: int, say: Callable[[str], None],
+                init: dict | None = None) -> _Part:  # fmt: skip
+        """Fit the windows ``wins`` of one segment (:func:`layout`), the first from the retarget alone,
+        each next from the one before; ``n_windows``: the take's count (for progress messages; 0:
+        ``wins`` is a seam's window).
+        ``init``: the whole take's answer so far (:func:`_join`'s dict): then the first window
+        starts from it, and the windows read its two frames before the first and after the last as
+        fixed context (a seam's window)."""
+        acts, collide, dev, cfg, fps = self.acts, self.collide, self.dev, self.cfg, self.fps
+        first, last = wins[0][1], wins[-1][2]
+        a0, a1 = (first, last) if init is None else (max(first - 2, 0), min(last + 2, self.T))
+        S = len(MVN_SEGMENTS)
+        if init is None:
+            deltas = [torch.zeros(a1 - a0, S, 3, device=dev) for _ in acts]
+            dtransl = [torch.zeros(a1 - a0, 3, device=dev) for _ in acts]
+            openings = [torch.zeros(a1 - a0, 4, device=dev) for _ in acts]
+        else:
+            deltas, dtransl, openings = ([torch.tensor(x[a0:a1], device=dev) for x in init[key]] for key in ("delta", "dtransl", "opening"))
+        out = _Part(first, [], [], [], np.zeros(last - first), np.zeros(last - first))
+        if collide is not None:
+            collide.clear_memo()  # each segment starts from the same state in any process
+        P = 3  # optimised tensors per actor: delta, dtransl, opening
+        for j_win, (wi, s0, s1) in enumerate(wins):
+            sl = slice(s0, s1)  # timeline frames
+            loc = slice(s0 - a0, s1 - a0)  # the same, in the segment's tensors
+            ploc = slice(s0 - first, s1 - first)  # the same, in the answer's arrays
+            ctx_n = min(2, s0 - a0) if (j_win or init is not None) else 0
+            after_n = a1 - s1 if j_win == len(wins) - 1 else 0
+
+            def context(k, a, csl):
+                """(joints, soles, openings) of timeline frames ``csl`` from the segment's tensors."""
+                cloc = slice(csl.start - a0, csl.stop - a0)
+                rot = a.rotations(deltas[k][cloc], csl)
+                (joints, _, _), sole = a.skeleton(rot, a.transl0[csl] + dtransl[k][cloc])
+                return joints, sole, openings[k][cloc]
+
+            with torch.no_grad():
+                ctxs = [context(k, a, slice(s0 - ctx_n, s0)) if ctx_n else None for k, a in enumerate(acts)]
+                afters = [context(k, a, slice(s1, s1 + after_n)) if after_n else None for k, a in enumerate(acts)]
+            params = []
+            for k in range(len(acts)):
+                params += [deltas[k][loc].clone().requires_grad_(True), dtransl[k][loc].clone().requires_grad_(True),
+                           openings[k][loc].clone().requires_grad_(cfg.hand_opening)]
+            # the skeleton pass moves the bones only (no term there reads the fingers); the collision passes
+            # move the hands' openings too, when allowed
+            bones = [p for k in range(len(acts)) for p in params[P * k : P * k + 2]]
+            hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
+
+            def pose_all(idx):
+                """Both actors' posed bodies, with vertices, at window rows ``idx`` (a slice or index tensor)."""
+                return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), True, params[P * k + 2][idx])[1]
+                        for k, a in enumerate(acts)]  # fmt: skip
+
+            def skeleton_energy():
+                total = 0.0
+                outs = []
+                for k, a in enumerate(acts):
+                    e, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps, afters[k])
+                    total = total + e
+                    outs.append(rot)
+                return total, outs
+
+            opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
+
+            def closure():
+                opt.zero_grad()
+                e, _ = skeleton_energy()
+                e.backward()
+                return e
+
+            opt.step(closure)
+            if collide is not None:
+
+                def check():
+                    """The window's depths now (``penetration``'s dict) and, when contacts are held, them
+                    located (a :class:`Linearised` the next held pass starts from; else None)."""
+                    with torch.no_grad():
+                        vs = [p.vertices for p in pose_all(slice(None))]
+                        if not cfg.collision_hold_contacts:
+                            return collide.penetration(vs[0], vs[1], keys=range(s0, s1)), None
+                        lin = collide.linearise(vs[0], vs[1], keys=range(s0, s1), margin_m=cfg.collision_margin_m)
+                        return {"max_depth_m": lin.max_depth_m, "share": lin.share}, lin
+
+                pen, located = check()
+                out.pen_before[ploc] = pen["max_depth_m"]
+                out.share_before[ploc] = pen["share"]
+                hit = np.flatnonzero(pen["max_depth_m"] > 0)
+                out.collided += len(hit)
+                # (the deepest frame's depth, the corrections, the per-frame depths (W,)) after the skeleton pass;
+                # `best` below: the same after the best round so far
+                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
+                # the hands first: their openings have no data term, so they give way before any bone the
+                # suit and trackers hold, and the full rounds start from hands that already fit
+                passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
+                # held contacts first (cheap evaluations), except in the frames where a held round stalled: from then
+                # on those are located at every evaluation. A window the held rounds leave unsettled is fitted again
+                # from its skeleton pass with those frames and the ones left too deep located at every evaluation,
+                # and keeps the better answer
+                modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
+                # window rows whose contacts are located at every evaluation
+                exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(s1 - s0)
+                held_best = None
+                for mode in modes if len(hit) else []:
+                    best, restarts, settled = start, 0, False
+                    hit = np.flatnonzero(start[2] > 0)
+                    if mode == "exact" and len(modes) == 2:
+                        # exact in the frames the held rounds located exactly and those they left over the
+                        # tolerance (the accuracy benchmark's dance turns: 24 and 19 s instead of 38 and 26 with all
+                        # of them, in a sweep with a script outside the repo)
+                        exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
+                        _restore(params, start[1])
+                        out.exact_windows.append(f"frames {s0}-{s1 - 1}")
+                        located = None
+                    n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
+                    for what in passes:
+                        n_round += what == "all"
+                        weight = cfg.collision_weight * 4.0 ** max(n_round - 1, 0)  # x4 per full round
+                        hit_t = torch.as_tensor(hit, device=dev)
+                        start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
+                        free = hands if what == "hands" else bones + hands
+                        copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+                        label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
+                        # rows of `hit` whose contacts are held, and those located at every evaluation
+                        rows_x = np.flatnonzero(np.isin(hit, exact))
+                        rows_h = np.setdiff1d(np.arange(len(hit)), rows_x)
+                        use_held = len(rows_h) > 0
+                        label += ", held contacts" if len(rows_x) == 0 else (f", exact at {len(rows_x)} frames" if use_held else "")
+                        held = None
+                        if use_held:  # located where the pass starts (by the last check, if the bodies are still there)
+                            if located is None:
+                                _, located = check()
+                            held = located.subset(hit[rows_h])
+
+                        def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
+                                     rows_x=rows_x):  # fmt: skip
+                            if not _finite(params):
+                                raise _Diverged
+                            copt.zero_grad()
+                            e, rots = skeleton_energy()
+                            # every bone of the hit frames (fingers opened), for the few thousand (frame, vertex)
+                            # pairs the loss reads, skinned with the gradient
+                            posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[s0 + hit_t] + params[P * k + 1][hit_t], False,
+                                                    params[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
+
+                            def at(rows):  # the collision term's batch rows are `rows` of `hit`
+                                rows = torch.as_tensor(rows, device=dev)
+                                return lambda body, f, v: acts[body].rig.skin_at(posed_hit[body], rows[f], v)
+
+                            c = 0.0
+                            if held is not None:
+                                c = c + collide.linear_loss(held, at(rows_h), device=dev).sum()
+                            if len(rows_x):  # the full meshes, without gradient, locate the contacts
+                                with torch.no_grad():
+                                    vs = [p.vertices for p in pose_all(hit_t[rows_x])]
+                                c = c + collide(vs[0], vs[1], keys=s0 + hit[rows_x], points=at(rows_x)).loss.sum()
+                            e = e + weight * c
+                            e.backward()
+                            return e
+
+                        located = None  # the bodies move
+                        try:
+                            copt.step(cclosure)
+                        except _Diverged:
+                            pass
+                        if not _finite(params):
+                            # the line search stepped to non-finite corrections: keep the best round's answer
+                            _restore(params, best[1])
+                            out.diverged.append(label)
+                            break
+                        # how deep one pass leaves a frame depends on where it started, so frames still deeper than
+                        # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
+                        # the term: released, it would spring back (the other terms still pull it in) while its
+                        # neighbours are refitted. Frames pushed into contact by their neighbours join.
+                        now_pen, located = check()
+                        left = now_pen["max_depth_m"]
+                        if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
+                            out.rounds = max(out.rounds, n_round)
+                        stall = max(cfg.collision_tolerance_m, 0.75 * start_left.max())
+                        if use_held and what == "all" and left.max() > stall:
+                            # held planes stall where the answer lies through a thin part of the partner (a hand
+                            # 2 cm into a forearm: the exact term pushes it on through and out of the far side
+                            # once it passes the middle; a held plane holds the near side) or where the closest
+                            # faces change as the bodies move (interlocked fingers): the frames left that deep are
+                            # located at every evaluation from now on
+                            new = np.setdiff1d(np.flatnonzero(left > stall), exact)
+                            exact = np.union1d(exact, new)
+                            out.stalled.append(label)
+                            out.exact_frames += [int(s0 + f) for f in new]
+                        if left.max() > best[0]:
+                            # deeper than the best round so far (the data pull the bodies into each other harder
+                            # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
+                            # the next round starts again from the best answer, with the term weighted up
+                            _restore(params, best[1])
+                            located = None
+                            out.worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
+                        else:
+                            best = (float(left.max()), [p.detach().clone() for p in params], left)
+                            if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
+                                settled = True
+                                break
+                        hit = np.union1d(hit, np.flatnonzero(left > 0))
+                        if what == "all" and cfg.collision_restart and restarts < _MAX_RESTARTS and n_round >= 2:
+                            # frames a round could not move (interlocked hands: the two pushes oppose each other)
+                            # start again from their neighbours' answer, where the bodies meet less deeply. The
+                            # window now holds the best answer (kept or restored), and the round started from the
+                            # best before it: compare those two
+                            now = best[2]
+                            deep = now > cfg.collision_tolerance_m
+                            stuck = deep & (now > 0.8 * start_left)
+                            if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
+                                run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
+                                if _restart_from_neighbours(params, deep & np.isin(run, run[stuck])):
+                                    restarts += 1
+                                    located = None
+                                    say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
+                    if settled or mode == "exact":
+                        break
+                    held_best = best
+                if held_best is not None and held_best[0] < best[0]:  # the held rounds had left it less deep
+                    _restore(params, held_best[1])
+            for k in range(len(acts)):  # overlapping frames take the later window's answer
+                for j, t in enumerate((deltas[k], dtransl[k], openings[k])):
+                    t[loc] = params[P * k + j].detach()
+            say(f"window {wi + 1}/{n_windows}: frames {s0}-{s1 - 1}" if n_windows else f"seam: frames {s0}-{s1 - 1} fitted again")
+        out.delta, out.dtransl, out.opening = ([x[first - a0 : last - a0].cpu().numpy() for x in xs] for xs in (deltas, dtransl, openings))
+        return out
+
+
+def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, progress, workers: int | None) -> FitResult:
     from dualhuman_builder.tracks import BodyTrack, InteractionSequence
 
     say = progress or (lambda _m: None)
@@ -365,230 +781,32 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     if T < 2:
         raise FitError(f"the take has {T} frame(s) on the timeline; fitting needs at least 2")
     t_start = time.perf_counter()
-    soles = sole_vertices(model)
-    acts = [_Actor(model, inp, fps, cfg, soles) for inp in inputs]
-    dev = torch.device(cfg.device)
-    S = len(MVN_SEGMENTS)
-    deltas = [torch.zeros(T, S, 3, device=dev) for _ in acts]
-    dtransl = [torch.zeros(T, 3, device=dev) for _ in acts]
-    openings = [torch.zeros(T, 4, device=dev) for _ in acts]
-    P = 3  # optimised tensors per actor: delta, dtransl, opening
-    # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same
-    # answers as the 1 cm default, but vertices keep a known sign over larger moves between L-BFGS
-    # evaluations, so fewer need the sign flood fill (benchmarks/bench_fit_collision.py: 1.1-1.4x, identical depths)
-    # the coincidence guard compares the torsos' centroids: the whole bodies' come within 2 cm in a close hug
-    collide = (CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01, guard_vertices=torso_vertices(model))
-               if (cfg.collision and len(acts) == 2) else None)  # fmt: skip
-    pen_before = np.zeros(T)
-    pen_share_before = np.zeros(T)
-    collided_frames = 0
-    rounds_used = 0
-    diverged: list[str] = []  # collision passes that stepped to non-finite values (undone)
-    worsened: list[str] = []  # collision passes that left the deepest frame deeper than the best (undone)
-    exact_frames: list[int] = []  # timeline frames whose contacts were located at every evaluation after a stall
-    exact_windows: list[str] = []  # windows the held rounds did not settle, fitted again exactly
-    stalled_rounds: list[str] = []  # held rounds that stalled
-    W, O = max(int(cfg.window), 4), max(int(cfg.overlap), 0)
-    starts = list(range(0, T, max(W - O, 1)))
-    for wi, s0 in enumerate(starts):
-        s1 = min(s0 + W, T)
-        sl = slice(s0, s1)
-        ctx_n = min(2, s0)
-        with torch.no_grad():
-            ctxs = []
-            for k, a in enumerate(acts):
-                if ctx_n:
-                    csl = slice(s0 - ctx_n, s0)
-                    rot = a.rotations(deltas[k][csl], csl)
-                    (joints, _, _), sole = a.skeleton(rot, a.transl0[csl] + dtransl[k][csl])
-                    ctxs.append((joints, sole, openings[k][csl]))
-                else:
-                    ctxs.append(None)
-        params = []
-        for k in range(len(acts)):
-            params += [deltas[k][sl].clone().requires_grad_(True), dtransl[k][sl].clone().requires_grad_(True),
-                       openings[k][sl].clone().requires_grad_(cfg.hand_opening)]
-        # the skeleton pass moves the bones only (no term there reads the fingers); the collision passes
-        # move the hands' openings too, when allowed
-        bones = [p for k in range(len(acts)) for p in params[P * k : P * k + 2]]
-        hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
+    fitter = _Fitter(model, inputs, fps, cfg)
+    acts, collide, dev = fitter.acts, fitter.collide, fitter.dev
+    segments = layout(T, cfg)
+    n_windows = sum(len(seg) for seg in segments)
+    n_workers = fit_workers(len(segments), cfg, model) if workers is None else max(1, min(int(workers), len(segments)))
+    if n_workers > 1 and not _forkable(model):
+        say(f"fit: {n_workers} workers asked for, but the body model is not the toolkit's float32 anny; fitting in this process")
+        n_workers = 1
+    if n_workers > 1:
+        from dualhuman_builder.fit.workers import fit_in_workers
 
-        def pose_all(idx):
-            """Both actors' posed bodies, with vertices, at window rows ``idx`` (a slice or index tensor)."""
-            return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), True, params[P * k + 2][idx])[1]
-                    for k, a in enumerate(acts)]  # fmt: skip
-
-        def skeleton_energy():
-            total = 0.0
-            outs = []
-            for k, a in enumerate(acts):
-                e, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps)
-                total = total + e
-                outs.append(rot)
-            return total, outs
-
-        opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            e, _ = skeleton_energy()
-            e.backward()
-            return e
-
-        opt.step(closure)
-        if collide is not None:
-
-            def check():
-                """The window's depths now (``penetration``'s dict) and, when contacts are held, them
-                located (a :class:`Linearised` the next held pass starts from; else None)."""
-                with torch.no_grad():
-                    vs = [p.vertices for p in pose_all(slice(None))]
-                    if not cfg.collision_hold_contacts:
-                        return collide.penetration(vs[0], vs[1], keys=range(s0, s1)), None
-                    lin = collide.linearise(vs[0], vs[1], keys=range(s0, s1), margin_m=cfg.collision_margin_m)
-                    return {"max_depth_m": lin.max_depth_m, "share": lin.share}, lin
-
-            pen, located = check()
-            pen_before[sl] = pen["max_depth_m"]
-            pen_share_before[sl] = pen["share"]
-            hit = np.flatnonzero(pen["max_depth_m"] > 0)
-            collided_frames += len(hit)
-            # (the deepest frame's depth, the corrections, the per-frame depths (W,)) after the skeleton pass;
-            # `best` below: the same after the best round so far
-            start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
-            # the hands first: their openings have no data term, so they give way before any bone the
-            # suit and trackers hold, and the full rounds start from hands that already fit
-            passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
-            # held contacts first (cheap evaluations), except in the frames where a held round stalled: from then
-            # on those are located at every evaluation. A window the held rounds leave unsettled is fitted again
-            # from its skeleton pass with those frames and the ones left too deep located at every evaluation,
-            # and keeps the better answer
-            modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
-            # window rows whose contacts are located at every evaluation
-            exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(s1 - s0)
-            held_best = None
-            for mode in modes if len(hit) else []:
-                best, restarts, settled = start, 0, False
-                hit = np.flatnonzero(start[2] > 0)
-                if mode == "exact" and len(modes) == 2:
-                    # exact in the frames the held rounds located exactly and those they left over the
-                    # tolerance (the accuracy benchmark's dance turns: 24 and 19 s instead of 38 and 26 with all
-                    # of them, in a sweep with a script outside the repo)
-                    exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
-                    _restore(params, start[1])
-                    exact_windows.append(f"frames {s0}-{s1 - 1}")
-                    located = None
-                n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
-                for what in passes:
-                    n_round += what == "all"
-                    weight = cfg.collision_weight * 4.0 ** max(n_round - 1, 0)  # x4 per full round
-                    hit_t = torch.as_tensor(hit, device=dev)
-                    start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
-                    free = hands if what == "hands" else bones + hands
-                    copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
-                    label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
-                    # rows of `hit` whose contacts are held, and those located at every evaluation
-                    rows_x = np.flatnonzero(np.isin(hit, exact))
-                    rows_h = np.setdiff1d(np.arange(len(hit)), rows_x)
-                    use_held = len(rows_h) > 0
-                    label += ", held contacts" if len(rows_x) == 0 else (f", exact at {len(rows_x)} frames" if use_held else "")
-                    held = None
-                    if use_held:  # located where the pass starts (by the last check, if the bodies are still there)
-                        if located is None:
-                            _, located = check()
-                        held = located.subset(hit[rows_h])
-
-                    def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
-                                 rows_x=rows_x):  # fmt: skip
-                        if not _finite(params):
-                            raise _Diverged
-                        copt.zero_grad()
-                        e, rots = skeleton_energy()
-                        # every bone of the hit frames (fingers opened), for the few thousand (frame, vertex)
-                        # pairs the loss reads, skinned with the gradient
-                        posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[s0 + hit_t] + params[P * k + 1][hit_t], False,
-                                                params[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
-
-                        def at(rows):  # the collision term's batch rows are `rows` of `hit`
-                            rows = torch.as_tensor(rows, device=dev)
-                            return lambda body, f, v: acts[body].rig.skin_at(posed_hit[body], rows[f], v)
-
-                        c = 0.0
-                        if held is not None:
-                            c = c + collide.linear_loss(held, at(rows_h), device=dev).sum()
-                        if len(rows_x):  # the full meshes, without gradient, locate the contacts
-                            with torch.no_grad():
-                                vs = [p.vertices for p in pose_all(hit_t[rows_x])]
-                            c = c + collide(vs[0], vs[1], keys=s0 + hit[rows_x], points=at(rows_x)).loss.sum()
-                        e = e + weight * c
-                        e.backward()
-                        return e
-
-                    located = None  # the bodies move
-                    try:
-                        copt.step(cclosure)
-                    except _Diverged:
-                        pass
-                    if not _finite(params):
-                        # the line search stepped to non-finite corrections: keep the best round's answer
-                        _restore(params, best[1])
-                        diverged.append(label)
-                        break
-                    # how deep one pass leaves a frame depends on where it started, so frames still deeper than
-                    # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
-                    # the term: released, it would spring back (the other terms still pull it in) while its
-                    # neighbours are refitted. Frames pushed into contact by their neighbours join.
-                    now_pen, located = check()
-                    left = now_pen["max_depth_m"]
-                    if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
-                        rounds_used = max(rounds_used, n_round)
-                    stall = max(cfg.collision_tolerance_m, 0.75 * start_left.max())
-                    if use_held and what == "all" and left.max() > stall:
-                        # held planes stall where the answer lies through a thin part of the partner (a hand
-                        # 2 cm into a forearm: the exact term pushes it on through and out of the far side
-                        # once it passes the middle; a held plane holds the near side) or where the closest
-                        # faces change as the bodies move (interlocked fingers): the frames left that deep are
-                        # located at every evaluation from now on
-                        new = np.setdiff1d(np.flatnonzero(left > stall), exact)
-                        exact = np.union1d(exact, new)
-                        stalled_rounds.append(label)
-                        exact_frames += [int(s0 + f) for f in new]
-                    if left.max() > best[0]:
-                        # deeper than the best round so far (the data pull the bodies into each other harder
-                        # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
-                        # the next round starts again from the best answer, with the term weighted up
-                        _restore(params, best[1])
-                        located = None
-                        worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
-                    else:
-                        best = (float(left.max()), [p.detach().clone() for p in params], left)
-                        if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
-                            settled = True
-                            break
-                    hit = np.union1d(hit, np.flatnonzero(left > 0))
-                    if what == "all" and cfg.collision_restart and restarts < _MAX_RESTARTS and n_round >= 2:
-                        # frames a round could not move (interlocked hands: the two pushes oppose each other)
-                        # start again from their neighbours' answer, where the bodies meet less deeply. The
-                        # window now holds the best answer (kept or restored), and the round started from the
-                        # best before it: compare those two
-                        now = best[2]
-                        deep = now > cfg.collision_tolerance_m
-                        stuck = deep & (now > 0.8 * start_left)
-                        if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
-                            run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
-                            if _restart_from_neighbours(params, deep & np.isin(run, run[stuck])):
-                                restarts += 1
-                                located = None
-                                say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
-                if settled or mode == "exact":
-                    break
-                held_best = best
-            if held_best is not None and held_best[0] < best[0]:  # the held rounds had left it less deep
-                _restore(params, held_best[1])
-        for k in range(len(acts)):  # overlapping frames take the later window's answer
-            for j, t in enumerate((deltas[k], dtransl[k], openings[k])):
-                t[sl] = params[P * k + j].detach()
-        say(f"window {wi + 1}/{len(starts)}: frames {s0}-{s1 - 1}")
+        say(f"fit: {len(segments)} segments of up to {max(1, int(cfg.segment_windows))} windows, on {n_workers} processes")
+        parts = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
+    else:
+        parts = [fitter.segment(seg, n_windows, say) for seg in segments]
+    joined = _join(parts, T)
+    seams = _mend_seams(fitter, parts, joined, say)
+    deltas, dtransl, openings = ([torch.as_tensor(x, device=dev) for x in joined[key]] for key in ("delta", "dtransl", "opening"))
+    pen_before, pen_share_before = joined["pen_before"], joined["share_before"]
+    collided_frames = sum(p.collided for p in parts)
+    rounds_used = max(p.rounds for p in parts)
+    diverged = [x for p in parts for x in p.diverged]
+    worsened = [x for p in parts for x in p.worsened]
+    exact_frames = [x for p in parts for x in p.exact_frames]
+    exact_windows = [x for p in parts for x in p.exact_windows]
+    stalled_rounds = [x for p in parts for x in p.stalled]
     seconds = time.perf_counter() - t_start
 
     # ---- outputs and per-frame diagnostics
@@ -630,7 +848,8 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
                "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used),
                "collision_diverged": diverged, "collision_worsened": worsened,
-               "collision_exact_frames": exact_frames, "collision_exact_windows": exact_windows, "collision_held_stalled": stalled_rounds}  # fmt: skip
+               "collision_exact_frames": exact_frames, "collision_exact_windows": exact_windows, "collision_held_stalled": stalled_rounds,
+               "segments": len(segments), "processes": n_workers, "seams_fitted_again": seams}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),

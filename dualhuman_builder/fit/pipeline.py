@@ -46,8 +46,9 @@ def shape_dict(cal) -> dict:
 
 def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool = True, config: FitConfig = FitConfig(),
                  known_shapes: dict | None = None, statures: dict | None = None, genders: dict | None = None,
-                 model=None, progress: Callable[[str], None] | None = None) -> TakeFit:  # fmt: skip
-    """Run the whole path on a take file (or its :func:`read_columns`)."""
+                 model=None, progress: Callable[[str], None] | None = None, workers: int | None = None) -> TakeFit:  # fmt: skip
+    """Run the whole path on a take file (or its :func:`read_columns`); the fit on ``workers``
+    processes (:func:`~dualhuman_builder.fit.fitter.fit_actors`)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.fit.fitter import fit_actors, inputs_from_fused
@@ -61,5 +62,5 @@ def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool 
     fused = [fuse_actor(a, sync.times_s, fps) for a in sync.actors]
     shapes = calibrate_shapes(model, fused, known_shapes, statures, genders)
     say("shapes: " + ", ".join(f"{k} {getattr(v, 'stature_m', 0):.3f} m" for k, v in shapes.items()))
-    fit = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), fps, config, say)
+    fit = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), fps, config, say, workers)
     return TakeFit(sync, fused, shapes, fit)

@@ -101,8 +101,10 @@ def load_fused(ws, take: str) -> list:
     return sync, out
 
 
-def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False, log: Callable = print, **sync_kw):
-    """Fit both actors of ``take`` (runs sync and fuse first when needed)."""
+def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False, log: Callable = print,
+            workers: int | None = None, **sync_kw):  # fmt: skip
+    """Fit both actors of ``take`` (runs sync and fuse first when needed) on ``workers`` processes
+    (:func:`~dualhuman_builder.fit.fitter.fit_actors`; the answer does not depend on it)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import fit_actors, inputs_from_fused
     from dualhuman_builder.fit.pipeline import calibrate_shapes, shape_dict
@@ -123,7 +125,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
                                  fix="check the rig binds two actors to suits")  # fmt: skip
         shapes = calibrate_shapes(model, fused, None, statures, genders)
         log("shapes: " + ", ".join(f"{k} {v.stature_m:.3f} m (segment lengths within {v.rms_mm:.1f} mm RMS)" for k, v in shapes.items()))
-        res = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), sync.fps, config, log)
+        res = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), sync.fps, config, log, workers)
         seq = res.sequence
         seq.save(out.path("bodies.npz"))
         out.path("shapes.json").write_text(json.dumps({k: v.as_dict() for k, v in shapes.items()}, indent=2))

@@ -29,7 +29,6 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 from dualhuman_builder.errors import DualhumanError
 
@@ -198,12 +197,9 @@ def _explain(variant: str, message: str) -> str:
 
 
 def _child_env(llvm_path: str | None) -> dict[str, str]:
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[2])  # so the child imports this same source tree
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    if llvm_path is not None:
-        env[LLVM_ENV] = llvm_path
-    return env
+    from dualhuman_builder.paths import child_env
+
+    return child_env({LLVM_ENV: llvm_path} if llvm_path is not None else None)
 
 
 def _tail(text: str, lines: int = 3) -> str:
