@@ -18,7 +18,7 @@ torch runs on ``--threads`` CPU threads (default ``FitConfig.torch_threads``, 1:
 exactly) for the fits and anny's rate alike. The take's segments are fitted on ``--workers``
 processes (this one included; ``auto``: the fit's default, one per CPU; a comma-separated list runs
 each mode once per value and prints the ratios to the first). Peak RSS is this process's and the
-largest worker's.
+largest worker process's (as it reports it).
 
     .venv/bin/python benchmarks/bench_fit.py --minutes 1 --collision held --workers 1,auto
 """
@@ -99,6 +99,7 @@ def main():
         torch.set_num_threads(threads)  # anny's raw rate below at the fit's setting
     print(f"take: {args.minutes:g} min at {args.fps:g} fps = {T} frame pairs; device {args.device}; torch threads {torch.get_num_threads()}")
     medians = {}
+    worker_mb = 0
     modes = {"all": ("off", "held", "exact")}.get(args.collision, (args.collision,))
     names = {"off": "without collision term", "held": "with collision term, contacts held",
              "exact": "with collision term, contacts located at every evaluation"}
@@ -112,6 +113,7 @@ def main():
                 rates.append(res.summary["frame_pairs_per_s"])
             medians[mode, w] = statistics.median(rates)
             s = res.summary
+            worker_mb = max(worker_mb, s.get("worker_peak_rss_mb") or 0)
             extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
                      f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
             ratio = f", {medians[mode, w] / medians[mode, workers[0]]:.2f}x the first" if w != workers[0] else ""
@@ -124,8 +126,8 @@ def main():
     rate = anny_rate(model, 2 * cfg.window, args.runs + 2)
     print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
     print("ratio fit / anny raw: " + ", ".join(f"{v / (rate / 2):.3f} {m} ({w or 'auto'} workers)" for (m, w), v in medians.items()))
-    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB this process, "
-          f"{resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024:.0f} MB the largest worker")
+    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB this process"
+          + (f", {worker_mb} MB the largest worker process (VmHWM)" if worker_mb else ""))
 
 
 if __name__ == "__main__":

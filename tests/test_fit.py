@@ -624,10 +624,13 @@ def test_fit_workers_follow_cpus_segments_memory_and_the_device():
 
 
 def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeypatch):
-    """The same take fitted in this process alone, with one worker process beside it, and with a
-    worker that cannot start (this process then fits every segment itself and says why): the same
-    bodies to the bit, collision passes included, and every window's progress line arrives."""
+    """The same take fitted in this process alone, by one worker process (this one made to leave it
+    every segment), and with a worker that cannot start (this process then fits every segment
+    itself and says why): the same bodies to the bit, collision passes included, and every window's
+    progress line arrives."""
     import sys
+
+    from dualhuman_builder.fit import workers as fit_workers_module
 
     T = 10
     inputs = _overlapping_pair(T, dx=0.1)
@@ -637,12 +640,15 @@ def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeyp
     for name, workers in (("here", 1), ("workers", 2), ("broken", 2)):
         said[name] = []
         with monkeypatch.context() as mp:
+            mp.setattr(fit_workers_module, "HERE_TOO", name == "here")
             if name == "broken":
                 mp.setattr(sys, "executable", "/bin/false")
             runs[name] = fit_actors(model, inputs, 15.0, cfg, progress=said[name].append, workers=workers)
     s = runs["here"].summary
     assert s["segments"] == 3 and s["processes"] == 1 and s["collision_frames"] > 0
     assert runs["workers"].summary["processes"] == 2 and runs["broken"].summary["processes"] == 2
+    assert runs["workers"].summary["worker_peak_rss_mb"] > 100  # the worker fitted (it reported its memory)
+    assert runs["broken"].summary["worker_peak_rss_mb"] == 0
     for name in ("workers", "broken"):
         for a, b in zip(runs["here"].sequence.actors, runs[name].sequence.actors):
             np.testing.assert_array_equal(a.pose, b.pose)
@@ -651,3 +657,4 @@ def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeyp
             assert runs[name].summary[key] == s[key], key
         assert sorted(m for m in said[name] if m.startswith("window")) == sorted(m for m in said["here"] if m.startswith("window"))
     assert any(m.startswith("WARNING: fit worker 1 exited with status 1") for m in said["broken"]), said["broken"]
+    assert [m for m in said["broken"] if "its worker failed" in m] == [f"fitting segment {i} in this process (its worker failed)" for i in (1, 2, 3)]

@@ -370,8 +370,8 @@ class _Part:
     """One segment's answer, for timeline frames ``start .. start + n - 1``: per actor the corrections
     ``delta (n, 23, 3)`` (rotation vectors), ``dtransl (n, 3)`` (m) and the hand openings ``opening
     (n, 4)``; the depth ``pen_before (n,)`` (m) and penetrating share ``share_before (n,)`` after the
-    skeleton pass; and the collision passes' counts and lists (see the summary in
-    :func:`fit_actors`)."""
+    skeleton pass, ``pen_after``/``share_after`` the same at the answer (zeros without the collision
+    term); and the collision passes' counts and lists (see the summary in :func:`fit_actors`)."""
 
     start: int
     delta: list
@@ -379,6 +379,8 @@ class _Part:
     opening: list
     pen_before: np.ndarray
     share_before: np.ndarray
+    pen_after: np.ndarray | None = None
+    share_after: np.ndarray | None = None
     collided: int = 0
     rounds: int = 0
     diverged: list = field(default_factory=list)  # collision passes that stepped to non-finite values (undone)
@@ -417,11 +419,13 @@ def _join(parts: list[_Part], T: int) -> dict:
     of ``(T, ...)`` float32 arrays, ``pen_before``/``share_before`` ``(T,)``. In frames two consecutive
     segments share, the later one's weight rises linearly from ``1 / (n + 1)`` to ``n / (n + 1)`` over
     the ``n`` shared frames (rotation vectors, translations and openings alike: the corrections are
-    small, so blending rotation vectors is blending rotations); the depths are the later
-    segment's."""
+    small, so blending rotation vectors is blending rotations); the depths (``pen_before``,
+    ``share_before``, ``pen_after``, ``share_after`` ``(T,)``) are the later segment's (in the
+    shared frames :func:`_mend_seams` measures the blend's)."""
     first = parts[0]
     out = {key: [np.zeros((T,) + x.shape[1:], np.float32) for x in getattr(first, key)] for key in ("delta", "dtransl", "opening")}
-    out["pen_before"], out["share_before"] = np.zeros(T), np.zeros(T)
+    for key in ("pen_before", "share_before", "pen_after", "share_after"):
+        out[key] = np.zeros(T)
     end = 0  # frames before this are written
     for p in parts:
         a, n = p.start, len(p.pen_before)
@@ -433,8 +437,9 @@ def _join(parts: list[_Part], T: int) -> dict:
                 ws = w.reshape(-1, *([1] * (src.ndim - 1)))
                 dst[a : a + shared] = (1 - ws) * dst[a : a + shared] + ws * src[:shared]
                 dst[a + shared : a + n] = src[shared:]
-        out["pen_before"][a : a + n] = p.pen_before
-        out["share_before"][a : a + n] = p.share_before
+        for key in ("pen_before", "share_before", "pen_after", "share_after"):
+            if getattr(p, key) is not None:
+                out[key][a : a + n] = getattr(p, key)
         end = max(end, a + n)
     return out
 
@@ -488,8 +493,9 @@ def _mend_seams(fitter: _Fitter, parts: list[_Part], joined: dict, say: Callable
     ``collision_tolerance_m``, or with a larger penetrating share than ``collision_share_tolerance``,
     is fitted again as one window over those frames and ``overlap`` more on each side, starting
     from the blend, with the two frames on either side fixed as context (so it joins both
-    segments smoothly). Returns the seams fitted again, as ``"frames a-b"``."""
-    cfg, collide, acts = fitter.cfg, fitter.collide, fitter.acts
+    segments smoothly). ``joined["pen_after"]``/``["share_after"]`` get the shared frames' depths
+    (and the refitted window's). Returns the seams fitted again, as ``"frames a-b"``."""
+    cfg, collide = fitter.cfg, fitter.collide
     if collide is None:
         return []
     O, T = max(int(cfg.overlap), 0), fitter.T
@@ -498,19 +504,17 @@ def _mend_seams(fitter: _Fitter, parts: list[_Part], joined: dict, say: Callable
         b0, e = part.start, prev.start + len(prev.pen_before)  # the shared frames
         if e <= b0:
             continue
-        sl = slice(b0, e)
-        with torch.no_grad():
-            vs = [a.pose(*(torch.as_tensor(joined[key][k][sl], device=fitter.dev) for key in ("delta", "dtransl")), sl, True,
-                         torch.as_tensor(joined["opening"][k][sl], device=fitter.dev))[1].vertices for k, a in enumerate(acts)]  # fmt: skip
-            pen = collide.penetration(vs[0], vs[1])
-        if pen["max_depth_m"].max() <= cfg.collision_tolerance_m and pen["share"].max() <= cfg.collision_share_tolerance:
+        depth, share = fitter.depths(b0, e, *(joined[key] for key in ("delta", "dtransl", "opening")), origin=0)
+        joined["pen_after"][b0:e], joined["share_after"][b0:e] = depth, share
+        if depth.max() <= cfg.collision_tolerance_m and share.max() <= cfg.collision_share_tolerance:
             continue
         c0, c1 = max(b0 - O, 0), min(e + O, T)
-        say(f"seam frames {b0}-{e - 1}: {1000 * pen['max_depth_m'].max():.1f} mm deep after the cross-fade")
+        say(f"seam frames {b0}-{e - 1}: {1000 * depth.max():.1f} mm deep after the cross-fade")
         fixed = fitter.segment([(0, c0, c1)], 0, say, init=joined)
         for key in ("delta", "dtransl", "opening"):
             for dst, src in zip(joined[key], getattr(fixed, key)):
                 dst[c0:c1] = src
+        joined["pen_after"][c0:c1], joined["share_after"][c0:c1] = fixed.pen_after, fixed.share_after
         mended.append(f"frames {c0}-{c1 - 1}")
     return mended
 
@@ -766,7 +770,25 @@ class _Fitter:
                     t[loc] = params[P * k + j].detach()
             say(f"window {wi + 1}/{n_windows}: frames {s0}-{s1 - 1}" if n_windows else f"seam: frames {s0}-{s1 - 1} fitted again")
         out.delta, out.dtransl, out.opening = ([x[first - a0 : last - a0].cpu().numpy() for x in xs] for xs in (deltas, dtransl, openings))
+        if collide is not None:  # how deep the answer leaves each frame, here where the segments run in parallel
+            out.pen_after, out.share_after = self.depths(first, last, deltas, dtransl, openings, origin=a0)
         return out
+
+    def depths(self, s0: int, s1: int, delta: list, dtransl: list, opening: list, origin: int) -> tuple[np.ndarray, np.ndarray]:
+        """The deepest vertex (m) and the penetrating share of timeline frames ``s0 .. s1 - 1`` ``(n,)``
+        each, for per-actor corrections ``delta``/``dtransl``/``opening`` (arrays or tensors whose row
+        0 is timeline frame ``origin``), 64 frames at a time."""
+        depth, share = np.zeros(s1 - s0), np.zeros(s1 - s0)
+        for c0 in range(s0, s1, 64):
+            sl = slice(c0, min(c0 + 64, s1))
+            rows = slice(sl.start - origin, sl.stop - origin)
+            with torch.no_grad():
+                vs = [a.pose(*(torch.as_tensor(x[k][rows], device=self.dev) for x in (delta, dtransl)), sl, True,
+                             torch.as_tensor(opening[k][rows], device=self.dev))[1].vertices for k, a in enumerate(self.acts)]  # fmt: skip
+                pen = self.collide.penetration(vs[0], vs[1], keys=range(sl.start, sl.stop))
+            depth[sl.start - s0 : sl.stop - s0] = pen["max_depth_m"]
+            share[sl.start - s0 : sl.stop - s0] = pen["share"]
+        return depth, share
 
 
 def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, progress, workers: int | None) -> FitResult:
@@ -793,13 +815,14 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
         from dualhuman_builder.fit.workers import fit_in_workers
 
         say(f"fit: {len(segments)} segments of up to {max(1, int(cfg.segment_windows))} windows, on {n_workers} processes")
-        parts = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
+        parts, worker_mb = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
     else:
-        parts = [fitter.segment(seg, n_windows, say) for seg in segments]
+        parts, worker_mb = [fitter.segment(seg, n_windows, say) for seg in segments], None
     joined = _join(parts, T)
     seams = _mend_seams(fitter, parts, joined, say)
     deltas, dtransl, openings = ([torch.as_tensor(x, device=dev) for x in joined[key]] for key in ("delta", "dtransl", "opening"))
     pen_before, pen_share_before = joined["pen_before"], joined["share_before"]
+    pen_after, share_after = joined["pen_after"], joined["share_after"]
     collided_frames = sum(p.collided for p in parts)
     rounds_used = max(p.rounds for p in parts)
     diverged = [x for p in parts for x in p.diverged]
@@ -807,12 +830,9 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     exact_frames = [x for p in parts for x in p.exact_frames]
     exact_windows = [x for p in parts for x in p.exact_windows]
     stalled_rounds = [x for p in parts for x in p.stalled]
-    seconds = time.perf_counter() - t_start
 
     # ---- outputs and per-frame diagnostics
     tracks, frames = [], {}
-    pen_after = np.zeros(T)
-    share_after = np.zeros(T)
     for k, a in enumerate(acts):
         with torch.no_grad():
             rot = a.rotations(deltas[k], slice(None))
@@ -834,22 +854,17 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
         meta = {"fit": {"collision": collide is not None, "trackers": int(len(a.trk_seg)), "config": _config_dict(cfg)}}
         tracks.append(BodyTrack.from_model(model, pose, transl.cpu().numpy(), shape, fps, actor=a.name, meta=meta))
     if collide is not None:
-        for s0 in range(0, T, 64):
-            sl = slice(s0, min(s0 + 64, T))
-            with torch.no_grad():
-                vs = [a.pose(deltas[k][sl], dtransl[k][sl], sl, True, openings[k][sl])[1].vertices for k, a in enumerate(acts)]
-                pen = collide.penetration(vs[0], vs[1], keys=range(sl.start, sl.stop))
-            pen_after[sl] = pen["max_depth_m"]
-            share_after[sl] = pen["share"]
         frames["penetration depth (mm)/without collision term"] = pen_before * 1000
         frames["penetration depth (mm)/with collision term"] = pen_after * 1000
     valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in acts])
     seq = InteractionSequence(tuple(tracks)) if len(tracks) == 2 else None
+    seconds = time.perf_counter() - t_start  # everything: the segments, the seams, the outputs and diagnostics
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
                "collision_frames": int(collided_frames), "collision_rounds_used": int(rounds_used),
                "collision_diverged": diverged, "collision_worsened": worsened,
                "collision_exact_frames": exact_frames, "collision_exact_windows": exact_windows, "collision_held_stalled": stalled_rounds,
-               "segments": len(segments), "processes": n_workers, "seams_fitted_again": seams}  # fmt: skip
+               "segments": len(segments), "processes": n_workers, "seams_fitted_again": seams,
+               "worker_peak_rss_mb": None if worker_mb is None else round(worker_mb)}  # fmt: skip
     if collide is not None:
         summary.update(max_penetration_before_mm=round(float(pen_before.max() * 1000), 3),
                        max_penetration_after_mm=round(float(pen_after.max() * 1000), 3),

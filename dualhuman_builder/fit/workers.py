@@ -12,8 +12,8 @@ process has already begun on the first segment.
 
 The job (the actors' inputs, fps, the config and the segments) travels as a pickle in a temporary
 folder ``DIR``; a worker reads segment numbers on its stdin, one per line, and answers on its stdout
-with lines ``ready``, ``msg <progress line>`` and ``done <segment>`` (the answer in
-``DIR/part_<segment>.pkl``); anything else it prints goes to its stderr, kept in
+with lines ``ready``, ``msg <progress line>`` and ``done <segment> <peak kB>`` (the answer in
+``DIR/part_<segment>.pkl``; its peak resident memory so far); anything else it prints goes to its stderr, kept in
 ``DIR/stderr_<k>.txt``. A worker that dies leaves its segment to this process, which fits it itself
 after saying why (the worker's exit status and the end of its stderr). The folder is removed
 afterwards, also on failure.
@@ -33,18 +33,23 @@ from typing import Callable
 
 from dualhuman_builder.paths import child_env
 
+#: this process fits segments too (a test turns it off, so that the workers fit them all)
+HERE_TOO = True
+
 
 def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: int, workers: int,
-                   say: Callable[[str], None]) -> list:  # fmt: skip
+                   say: Callable[[str], None]) -> tuple[list, float]:  # fmt: skip
     """The :class:`~dualhuman_builder.fit.fitter._Part` of every segment in ``segments``, fitted by
-    this process's ``fitter`` and ``workers - 1`` worker processes. ``say`` gets the progress lines
-    (from any of them, one at a time)."""
+    this process's ``fitter`` and ``workers - 1`` worker processes, and the largest peak resident
+    memory (MB, ``VmHWM``) a worker reported (0: none finished a segment). ``say`` gets the progress
+    lines (from any of them, one at a time)."""
     cfg = fitter.cfg
     lock = threading.Lock()
     todo = list(range(len(segments)))
     parts: list = [None] * len(segments)
     busy: dict[int, int | None] = {}  # worker -> the segment it is fitting
     stopping = [False]
+    peak_kb = [0]
 
     def tell(msg: str) -> None:
         with lock:
@@ -77,7 +82,8 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
                     tell(rest)
                     continue
                 if kind == "done":
-                    i = int(rest)
+                    i, kb = (int(x) for x in rest.split())
+                    peak_kb[0] = max(peak_kb[0], kb)
                     with open(tmp / f"part_{i}.pkl", "rb") as f:
                         parts[i] = pickle.load(f)
                 if kind in ("ready", "done"):
@@ -94,11 +100,11 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
         feeders = [threading.Thread(target=feed, args=(k, p), daemon=True) for k, p in enumerate(procs)]
         for t in feeders:
             t.start()
-        while (i := take(-1)) is not None:  # this process fits too
+        while HERE_TOO and (i := take(-1)) is not None:  # this process fits too
             parts[i] = fitter.segment(segments[i], n_windows, tell)
         with lock:
-            stopping[0] = True  # nothing left: a worker still starting up is not waited for
-            idle = [k for k in range(len(procs)) if busy.get(k) is None]
+            stopping[0] = HERE_TOO  # nothing left: a worker still starting up is not waited for
+            idle = [k for k in range(len(procs)) if busy.get(k) is None] if HERE_TOO else []
         killed = [k for k in idle if procs[k].poll() is None]
         for k in killed:
             procs[k].kill()
@@ -112,7 +118,7 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
         for i in lost:  # a worker died holding it: fit it here
             tell(f"fitting segment {i + 1} in this process (its worker failed)")
             parts[i] = fitter.segment(segments[i], n_windows, tell)
-        return parts
+        return parts, peak_kb[0] / 1024
     finally:
         for p in procs:
             if p.poll() is None:
@@ -144,7 +150,17 @@ def _main(argv: list[str]) -> None:
         with open(tmp / f"part_{i}.tmp", "wb") as f:
             pickle.dump(part, f)
         os.replace(tmp / f"part_{i}.tmp", tmp / f"part_{i}.pkl")
-        proto.write(f"done {i}\n")
+        proto.write(f"done {i} {_peak_kb()}\n")
+
+
+def _peak_kb() -> int:
+    """This process's peak resident memory (kB), ``VmHWM`` (unlike ``ru_maxrss``, not the parent's
+    image this process was forked from before it started Python); 0 where there is no /proc."""
+    try:
+        with open("/proc/self/status") as f:
+            return next((int(line.split()[1]) for line in f if line.startswith("VmHWM:")), 0)
+    except OSError:
+        return 0
 
 
 if __name__ == "__main__":
