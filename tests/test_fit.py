@@ -577,7 +577,7 @@ def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(mode
     fitted again from the blend, over the shared frames and ``overlap`` more on each side, with the
     frames around it fixed: afterwards no frame is deeper than the tolerance, and the frames outside
     that window are untouched."""
-    from dualhuman_builder.fit.fitter import _Fitter, _join, _mend_seams, _Part
+    from dualhuman_builder.fit.fitter import _apply_seams, _Fitter, _join, _Part, _seam
 
     T = 12
     cfg = FitConfig(window=4, overlap=1, iterations=3, collision_iterations=4, hand_opening=False)
@@ -600,7 +600,10 @@ def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(mode
     d = depths(j)
     assert d[[0, 1, 2, 3, 4, 7, 8, 9, 10, 11]].max() == 0 and d[5:7].max() > 0.02  # the blend: b through a
     said = []
-    assert _mend_seams(fitter, parts, j, said.append) == ["frames 4-7"]
+    seam = _seam(fitter, parts[0], parts[1], said.append)
+    assert (seam.b0, seam.e) == (5, 7) and seam.depth.max() > 0.02 and seam.fixed is not None
+    assert _apply_seams(j, [seam]) == ["frames 4-7"]
+    np.testing.assert_array_equal(j["pen_after"][4:8], seam.fixed.pen_after)
     assert any("seam frames 5-6" in m and "mm deep after the cross-fade" in m for m in said), said
     assert depths(j).max() <= cfg.collision_tolerance_m
     for key in before:

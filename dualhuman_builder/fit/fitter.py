@@ -71,6 +71,7 @@ one and 1.2 mm after a second).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -421,7 +422,7 @@ def _join(parts: list[_Part], T: int) -> dict:
     the ``n`` shared frames (rotation vectors, translations and openings alike: the corrections are
     small, so blending rotation vectors is blending rotations); the depths (``pen_before``,
     ``share_before``, ``pen_after``, ``share_after`` ``(T,)``) are the later segment's (in the
-    shared frames :func:`_mend_seams` measures the blend's)."""
+    shared frames :func:`_seam` measures the blend's)."""
     first = parts[0]
     out = {key: [np.zeros((T,) + x.shape[1:], np.float32) for x in getattr(first, key)] for key in ("delta", "dtransl", "opening")}
     for key in ("pen_before", "share_before", "pen_after", "share_after"):
@@ -483,8 +484,22 @@ def _forkable(model) -> bool:
     return isinstance(model, BodyModel) and model.dtype == torch.float32
 
 
-def _mend_seams(fitter: _Fitter, parts: list[_Part], joined: dict, say: Callable[[str], None]) -> list[str]:
-    """Fit again, in place in ``joined``, the seams whose cross-fade left the bodies in each other.
+@dataclass
+class _Seam:
+    """Where two consecutive segments meet: their shared timeline frames ``b0 .. e - 1``, the depth
+    (m) and penetrating share ``(e - b0,)`` their cross-fade leaves there, and the window fitted
+    again over them (a :class:`_Part`), or None where the cross-fade was clean."""
+
+    b0: int
+    e: int
+    depth: np.ndarray
+    share: np.ndarray
+    fixed: _Part | None = None
+
+
+def _seam(fitter: _Fitter, prev: _Part, part: _Part, say: Callable[[str], None]) -> _Seam | None:
+    """Measure, and fit again where needed, the seam between consecutive segments ``prev`` and ``part``
+    (None: they share no frames, or there is no collision term).
 
     Two segments can leave the bodies apart in their shared frames in different ways (a hand open
     on one side of the partner's arm in one, curled in the other), and the blend between two such
@@ -493,29 +508,40 @@ def _mend_seams(fitter: _Fitter, parts: list[_Part], joined: dict, say: Callable
     ``collision_tolerance_m``, or with a larger penetrating share than ``collision_share_tolerance``,
     is fitted again as one window over those frames and ``overlap`` more on each side, starting
     from the blend, with the two frames on either side fixed as context (so it joins both
-    segments smoothly). ``joined["pen_after"]``/``["share_after"]`` get the shared frames' depths
-    (and the refitted window's). Returns the seams fitted again, as ``"frames a-b"``."""
-    cfg, collide = fitter.cfg, fitter.collide
-    if collide is None:
-        return []
-    O, T = max(int(cfg.overlap), 0), fitter.T
-    mended = []
-    for prev, part in zip(parts[:-1], parts[1:]):
-        b0, e = part.start, prev.start + len(prev.pen_before)  # the shared frames
-        if e <= b0:
-            continue
-        depth, share = fitter.depths(b0, e, *(joined[key] for key in ("delta", "dtransl", "opening")), origin=0)
-        joined["pen_after"][b0:e], joined["share_after"][b0:e] = depth, share
-        if depth.max() <= cfg.collision_tolerance_m and share.max() <= cfg.collision_share_tolerance:
-            continue
-        c0, c1 = max(b0 - O, 0), min(e + O, T)
+    segments smoothly). Needs only the two segments, so it runs as soon as both are done."""
+    cfg = fitter.cfg
+    b0, e = part.start, prev.start + len(prev.pen_before)
+    if fitter.collide is None or e <= b0:
+        return None
+    a = prev.start
+    local = _join([dataclasses.replace(prev, start=0), dataclasses.replace(part, start=part.start - a)],
+                  part.start + len(part.pen_before) - a)  # fmt: skip
+    depth, share = fitter.depths(b0, e, local["delta"], local["dtransl"], local["opening"], origin=a)
+    seam = _Seam(b0, e, depth, share)
+    if depth.max() > cfg.collision_tolerance_m or share.max() > cfg.collision_share_tolerance:
+        O = max(int(cfg.overlap), 0)
+        c0, c1 = max(b0 - O, a), min(e + O, part.start + len(part.pen_before))
         say(f"seam frames {b0}-{e - 1}: {1000 * depth.max():.1f} mm deep after the cross-fade")
-        fixed = fitter.segment([(0, c0, c1)], 0, say, init=joined)
-        for key in ("delta", "dtransl", "opening"):
-            for dst, src in zip(joined[key], getattr(fixed, key)):
-                dst[c0:c1] = src
-        joined["pen_after"][c0:c1], joined["share_after"][c0:c1] = fixed.pen_after, fixed.share_after
-        mended.append(f"frames {c0}-{c1 - 1}")
+        seam.fixed = fitter.segment([(0, c0, c1)], 0, say, init=local, origin=a)
+    return seam
+
+
+def _apply_seams(joined: dict, seams: list) -> list[str]:
+    """Write the seams' depths and their windows fitted again into ``joined`` (:func:`_join`'s dict),
+    in place; returns those windows as ``"frames a-b"``."""
+    mended = []
+    for seam in seams:
+        if seam is None:
+            continue
+        joined["pen_after"][seam.b0 : seam.e], joined["share_after"][seam.b0 : seam.e] = seam.depth, seam.share
+        f = seam.fixed
+        if f is not None:
+            c0, c1 = f.start, f.start + len(f.pen_before)
+            for key in ("delta", "dtransl", "opening"):
+                for dst, src in zip(joined[key], getattr(f, key)):
+                    dst[c0:c1] = src
+            joined["pen_after"][c0:c1], joined["share_after"][c0:c1] = f.pen_after, f.share_after
+            mended.append(f"frames {c0}-{c1 - 1}")
     return mended
 
 
@@ -546,23 +572,23 @@ class _Fitter:
                                          guard_vertices=torso_vertices(model), bvh_points=rest)  # fmt: skip
 
     def segment(self, wins: list[tuple[int, int, int]], n_windows: int, say: Callable[[str], None],
-                init: dict | None = None) -> _Part:  # fmt: skip
+                init: dict | None = None, origin: int = 0) -> _Part:  # fmt: skip
         """Fit the windows ``wins`` of one segment (:func:`layout`), the first from the retarget alone,
         each next from the one before; ``n_windows``: the take's count (for progress messages; 0:
         ``wins`` is a seam's window).
-        ``init``: the whole take's answer so far (:func:`_join`'s dict): then the first window
-        starts from it, and the windows read its two frames before the first and after the last as
-        fixed context (a seam's window)."""
+        ``init``: an answer so far (:func:`_join`'s dict; its row 0 is timeline frame ``origin``):
+        then the first window starts from it, and the windows read its two frames before the first
+        and after the last (as far as it reaches) as fixed context (a seam's window)."""
         acts, collide, dev, cfg, fps = self.acts, self.collide, self.dev, self.cfg, self.fps
         first, last = wins[0][1], wins[-1][2]
-        a0, a1 = (first, last) if init is None else (max(first - 2, 0), min(last + 2, self.T))
+        a0, a1 = (first, last) if init is None else (max(first - 2, origin), min(last + 2, origin + len(init["delta"][0])))
         S = len(MVN_SEGMENTS)
         if init is None:
             deltas = [torch.zeros(a1 - a0, S, 3, device=dev) for _ in acts]
             dtransl = [torch.zeros(a1 - a0, 3, device=dev) for _ in acts]
             openings = [torch.zeros(a1 - a0, 4, device=dev) for _ in acts]
         else:
-            deltas, dtransl, openings = ([torch.tensor(x[a0:a1], device=dev) for x in init[key]] for key in ("delta", "dtransl", "opening"))
+            deltas, dtransl, openings = ([torch.tensor(x[a0 - origin : a1 - origin], device=dev) for x in init[key]] for key in ("delta", "dtransl", "opening"))
         out = _Part(first, [], [], [], np.zeros(last - first), np.zeros(last - first))
         if collide is not None:
             collide.clear_memo()  # each segment starts from the same state in any process
@@ -815,11 +841,12 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
         from dualhuman_builder.fit.workers import fit_in_workers
 
         say(f"fit: {len(segments)} segments of up to {max(1, int(cfg.segment_windows))} windows, on {n_workers} processes")
-        parts, worker_mb = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
+        parts, seams, worker_mb = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
     else:
-        parts, worker_mb = [fitter.segment(seg, n_windows, say) for seg in segments], None
+        parts = [fitter.segment(seg, n_windows, say) for seg in segments]
+        seams, worker_mb = [_seam(fitter, p, q, say) for p, q in zip(parts, parts[1:])], None
     joined = _join(parts, T)
-    seams = _mend_seams(fitter, parts, joined, say)
+    seams = _apply_seams(joined, seams)
     deltas, dtransl, openings = ([torch.as_tensor(x, device=dev) for x in joined[key]] for key in ("delta", "dtransl", "opening"))
     pen_before, pen_share_before = joined["pen_before"], joined["share_before"]
     pen_after, share_after = joined["pen_after"], joined["share_after"]

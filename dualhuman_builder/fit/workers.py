@@ -38,11 +38,15 @@ HERE_TOO = True
 
 
 def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: int, workers: int,
-                   say: Callable[[str], None]) -> tuple[list, float]:  # fmt: skip
+                   say: Callable[[str], None]) -> tuple[list, list, float]:  # fmt: skip
     """The :class:`~dualhuman_builder.fit.fitter._Part` of every segment in ``segments``, fitted by
-    this process's ``fitter`` and ``workers - 1`` worker processes, and the largest peak resident
-    memory (MB, ``VmHWM``) a worker reported (0: none finished a segment). ``say`` gets the progress
-    lines (from any of them, one at a time)."""
+    this process's ``fitter`` and ``workers - 1`` worker processes; the seams between consecutive
+    ones (:func:`~dualhuman_builder.fit.fitter._seam`, each measured and where needed fitted again by
+    this process as soon as both its segments are done, between its own segments); and the largest
+    peak resident memory (MB, ``VmHWM``) a worker reported (0: none finished a segment). ``say``
+    gets the progress lines (from any of them, one at a time)."""
+    from dualhuman_builder.fit.fitter import _seam
+
     cfg = fitter.cfg
     lock = threading.Lock()
     todo = list(range(len(segments)))
@@ -100,7 +104,20 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
         feeders = [threading.Thread(target=feed, args=(k, p), daemon=True) for k, p in enumerate(procs)]
         for t in feeders:
             t.start()
-        while HERE_TOO and (i := take(-1)) is not None:  # this process fits too
+        seams: list = [None] * (len(segments) - 1)
+        todo_seams = set(range(len(seams)))
+
+        def mend_ready() -> None:
+            """The seams whose two segments are both done."""
+            for j in sorted(todo_seams):
+                if parts[j] is not None and parts[j + 1] is not None:
+                    todo_seams.discard(j)
+                    seams[j] = _seam(fitter, parts[j], parts[j + 1], tell)
+
+        while HERE_TOO:  # this process fits too, and mends the seams as their segments come in
+            mend_ready()
+            if (i := take(-1)) is None:
+                break
             parts[i] = fitter.segment(segments[i], n_windows, tell)
         with lock:
             stopping[0] = HERE_TOO  # nothing left: a worker still starting up is not waited for
@@ -118,7 +135,8 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
         for i in lost:  # a worker died holding it: fit it here
             tell(f"fitting segment {i + 1} in this process (its worker failed)")
             parts[i] = fitter.segment(segments[i], n_windows, tell)
-        return parts, peak_kb[0] / 1024
+        mend_ready()
+        return parts, seams, peak_kb[0] / 1024
     finally:
         for p in procs:
             if p.poll() is None:
