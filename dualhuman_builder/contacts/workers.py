@@ -20,10 +20,8 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -31,7 +29,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from dualhuman_builder.paths import child_env
+from dualhuman_builder.children import child_env, scratch_with_children
 
 # frames per worker below which a worker's start-up (~1 s) costs more than it saves
 MIN_FRAMES_PER_WORKER = 48
@@ -54,9 +52,7 @@ def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.nd
     result)`` once all are done; adds the workers' query counts to ``counts``; ``on_done()`` is
     called (in this thread) as each frame finishes."""
     frames = np.asarray(frames, dtype=np.int64)
-    tmp = Path(tempfile.mkdtemp(prefix="dualhuman-contacts-"))
-    procs: list[subprocess.Popen] = []
-    try:
+    with scratch_with_children("dualhuman-contacts-") as (tmp, procs):
         for name, v in (("verts_a", verts_a), ("verts_b", verts_b)):  # in their own dtype: same answers
             mm = np.lib.format.open_memmap(tmp / f"{name}.npy", mode="w+", dtype=v.dtype, shape=(len(frames),) + v.shape[1:])
             for i in range(0, len(frames), 256):  # in blocks: no second copy of a long take in memory
@@ -111,12 +107,6 @@ def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.nd
                 frame_pairs = {(int(a), int(b)): (int(c), float(m)) for a, b, c, m in stats["pairs"][j]}
                 out.append((int(frames[i]), (labels[j], distances[j], frame_pairs)))
         yield from sorted(out, key=lambda item: item[0])
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _main(argv: list[str]) -> None:

@@ -23,15 +23,13 @@ from __future__ import annotations
 
 import os
 import pickle
-import shutil
 import subprocess
 import sys
-import tempfile
 import threading
 from pathlib import Path
 from typing import Callable
 
-from dualhuman_builder.paths import child_env
+from dualhuman_builder.children import child_env, scratch_with_children
 
 #: this process fits segments too (a test turns it off, so that the workers fit them all)
 HERE_TOO = True
@@ -66,9 +64,7 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
             busy[k] = i
             return i
 
-    tmp = Path(tempfile.mkdtemp(prefix="dualhuman-fit-"))
-    procs: list[subprocess.Popen] = []
-    try:
+    with scratch_with_children("dualhuman-fit-") as (tmp, procs):
         with open(tmp / "job.pkl", "wb") as f:
             pickle.dump({"inputs": inputs, "fps": fps, "cfg": cfg, "segments": segments, "n_windows": n_windows}, f)
         env = child_env()
@@ -137,12 +133,6 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
             parts[i] = fitter.segment(segments[i], n_windows, tell)
         mend_ready()
         return parts, seams, peak_kb[0] / 1024
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _main(argv: list[str]) -> None:

@@ -197,7 +197,7 @@ def _explain(variant: str, message: str) -> str:
 
 
 def _child_env(llvm_path: str | None) -> dict[str, str]:
-    from dualhuman_builder.paths import child_env
+    from dualhuman_builder.children import child_env
 
     return child_env({LLVM_ENV: llvm_path} if llvm_path is not None else None)
 
