@@ -3,7 +3,8 @@
 Per frame the pose starts from a closed-form retarget of the fused segment orientations onto the
 anny bones (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.retarget`); then both actors are refined
 together over windows of frames (batched, each window warm-started from the retarget and joined to
-the previous window's last frames), by L-BFGS on::
+the previous window's last frames; groups of windows form segments, fitted independently on
+several processes and cross-faded, :func:`layout`, :func:`_seam`), by L-BFGS on::
 
     E = sum_frames [ |delta|^2 / s_o^2                        orientation: change of each driven bone (deg)
                    + sum_trackers |site - p_tracker|^2 / s_t^2  tracker positions (drift-free reference)

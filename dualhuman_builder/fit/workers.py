@@ -121,8 +121,10 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
         killed = [k for k in idle if procs[k].poll() is None]
         for k in killed:
             procs[k].kill()
-        for t in feeders:
-            t.join()
+        while any(t.is_alive() for t in feeders):  # the workers' last segments: mend the seams as they come
+            mend_ready()
+            for t in feeders:
+                t.join(timeout=0.1)
         for k, p in enumerate(procs):
             if p.wait() != 0 and k not in killed:
                 tail = (tmp / f"stderr_{k}.txt").read_text(errors="replace").strip()[-1500:]
