@@ -446,7 +446,7 @@ def _join(parts: list[_Part], T: int) -> dict:
     return out
 
 
-def fit_workers(segments: int, cfg: FitConfig, model=None, cpus: int | None = None, available_bytes: int | None = None) -> int:
+def fit_workers(segments: int, cfg: FitConfig, cpus: int | None = None, available_bytes: int | None = None) -> int:
     """Processes a fit of ``segments`` segments runs on when the caller does not say (this one
     included): one per CPU, one per segment at most, and no more than leave :data:`WORKER_BYTES`
     of available memory to each; 1 on a GPU (``cfg.device`` other than ``cpu``: one device, and the
@@ -478,7 +478,7 @@ def _available_memory() -> int | None:
     return None
 
 
-def _forkable(model) -> bool:
+def _workers_build_it(model) -> bool:
     """Whether worker processes build the same body model (``get_body_model(cfg.device)``: anny, float32)."""
     from dualhuman_builder.body.model import BodyModel
 
@@ -834,8 +834,8 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     acts, collide, dev = fitter.acts, fitter.collide, fitter.dev
     segments = layout(T, cfg)
     n_windows = sum(len(seg) for seg in segments)
-    n_workers = fit_workers(len(segments), cfg, model) if workers is None else max(1, min(int(workers), len(segments)))
-    if n_workers > 1 and not _forkable(model):
+    n_workers = fit_workers(len(segments), cfg) if workers is None else max(1, min(int(workers), len(segments)))
+    if n_workers > 1 and not _workers_build_it(model):
         say(f"fit: {n_workers} workers asked for, but the body model is not the toolkit's float32 anny; fitting in this process")
         n_workers = 1
     if n_workers > 1:
