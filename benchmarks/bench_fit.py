@@ -87,7 +87,7 @@ def main():
                          "default), or a comma-separated list to compare (default: auto)")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.fit.fitter import FitConfig, fit_actors, fit_workers, layout
+    from dualhuman_builder.fit.fitter import FitConfig, fit_actors
 
     workers = [None if w.strip() == "auto" else int(w) for w in args.workers.split(",")]
 
@@ -106,16 +106,17 @@ def main():
     for mode in modes:
         cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads)
         for w in workers:
-            n = fit_workers(len(layout(T, cfg)), cfg) if w is None else w
             rates = []
             for _ in range(args.runs):
-                res = fit_actors(model, inp, args.fps, cfg, workers=n)
+                res = fit_actors(model, inp, args.fps, cfg, workers=w)
                 rates.append(res.summary["frame_pairs_per_s"])
             medians[mode, w] = statistics.median(rates)
             s = res.summary
+            n = s["processes"]
             worker_mb = max(worker_mb, s.get("worker_peak_rss_mb") or 0)
             extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
-                     f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}") if mode != "off" else ""  # fmt: skip
+                     f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}, "
+                     f"seams fitted again {len(s['seams_fitted_again'])} of {s['segments'] - 1}") if mode != "off" else ""  # fmt: skip
             ratio = f", {medians[mode, w] / medians[mode, workers[0]]:.2f}x the first" if w != workers[0] else ""
             print(f"fit {names[mode]}, {n} process{'es' if n > 1 else ''}: {medians[mode, w]:.1f} frame pairs/s "
                   f"(median of {args.runs}{extra}){ratio}", flush=True)  # fmt: skip

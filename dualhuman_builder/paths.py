@@ -11,4 +11,3 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RIGS_DIR = REPO_ROOT / "rigs"
 RENDER_TEMPLATES_DIR = REPO_ROOT / "render_templates"
-

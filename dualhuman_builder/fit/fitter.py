@@ -301,7 +301,7 @@ class _Actor:
 def _energy(act: _Actor, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float, after=None):
     """Skeleton energy of one actor on frames ``sl``; ``ctx``: (joints, soles, openings) of up to two
     frames before ``sl`` (fixed, from the previous window) or None; ``after``: the same of up to two
-    frames after it (a seam's window, :func:`_fit_actors`) or None. Returns (energy, rot): ``rot (n,
+    frames after it (a seam's window, :func:`_seam`) or None. Returns (energy, rot): ``rot (n,
     23, 3, 3)`` the driven bones' rotations (for the collision passes' full poses)."""
     rot = act.rotations(delta, sl)
     (joints, trk_heads, _), soles = act.skeleton(rot, act.transl0[sl] + dtransl)
@@ -372,7 +372,7 @@ class _Part:
     """One segment's answer, for timeline frames ``start .. start + n - 1``: per actor the corrections
     ``delta (n, 23, 3)`` (rotation vectors), ``dtransl (n, 3)`` (m) and the hand openings ``opening
     (n, 4)``; the depth ``pen_before (n,)`` (m) and penetrating share ``share_before (n,)`` after the
-    skeleton pass, ``pen_after``/``share_after`` the same at the answer (zeros without the collision
+    skeleton pass, ``pen_after``/``share_after`` the same at the answer (None without the collision
     term); and the collision passes' counts and lists (see the summary in :func:`fit_actors`)."""
 
     start: int
@@ -505,7 +505,7 @@ def _seam(fitter: _Fitter, prev: _Part, part: _Part, say: Callable[[str], None])
     Two segments can leave the bodies apart in their shared frames in different ways (a hand open
     on one side of the partner's arm in one, curled in the other), and the blend between two such
     answers can pass through the partner (the fit benchmark's 1-minute hug: 9.8 mm in one of 20
-    seams, from 0.4 and 1.2 mm). A seam whose shared frames the blend leaves deeper than
+    seams, from 0.4 and 1.2 mm; traced with a script outside the repo). A seam whose shared frames the blend leaves deeper than
     ``collision_tolerance_m``, or with a larger penetrating share than ``collision_share_tolerance``,
     is fitted again as one window over those frames and ``overlap`` more on each side, starting
     from the blend, with the two frames on either side fixed as context (so it joins both
@@ -517,6 +517,7 @@ def _seam(fitter: _Fitter, prev: _Part, part: _Part, say: Callable[[str], None])
     a = prev.start
     local = _join([dataclasses.replace(prev, start=0), dataclasses.replace(part, start=part.start - a)],
                   part.start + len(part.pen_before) - a)  # fmt: skip
+    fitter.collide.clear_memo()  # measured the same whichever segments this process fitted before
     depth, share = fitter.depths(b0, e, local["delta"], local["dtransl"], local["opening"], origin=a)
     seam = _Seam(b0, e, depth, share)
     if depth.max() > cfg.collision_tolerance_m or share.max() > cfg.collision_share_tolerance:
@@ -842,22 +843,24 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
         from dualhuman_builder.fit.workers import fit_in_workers
 
         say(f"fit: {len(segments)} segments of up to {max(1, int(cfg.segment_windows))} windows, on {n_workers} processes")
-        parts, seams, worker_mb = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
+        parts, seams_done, worker_mb = fit_in_workers(fitter, inputs, fps, segments, n_windows, n_workers, say)
     else:
         parts = [fitter.segment(seg, n_windows, say) for seg in segments]
-        seams, worker_mb = [_seam(fitter, p, q, say) for p, q in zip(parts, parts[1:])], None
+        seams_done, worker_mb = [_seam(fitter, p, q, say) for p, q in zip(parts, parts[1:])], None
     joined = _join(parts, T)
-    seams = _apply_seams(joined, seams)
+    seams = _apply_seams(joined, seams_done)
     deltas, dtransl, openings = ([torch.as_tensor(x, device=dev) for x in joined[key]] for key in ("delta", "dtransl", "opening"))
     pen_before, pen_share_before = joined["pen_before"], joined["share_before"]
     pen_after, share_after = joined["pen_after"], joined["share_after"]
-    collided_frames = sum(p.collided for p in parts)
-    rounds_used = max(p.rounds for p in parts)
-    diverged = [x for p in parts for x in p.diverged]
-    worsened = [x for p in parts for x in p.worsened]
-    exact_frames = [x for p in parts for x in p.exact_frames]
-    exact_windows = [x for p in parts for x in p.exact_windows]
-    stalled_rounds = [x for p in parts for x in p.stalled]
+    # the seams' windows fitted again count with the segments (a pass there can diverge or stall too)
+    fitted = parts + [s.fixed for s in seams_done if s is not None and s.fixed is not None]
+    collided_frames = sum(p.collided for p in fitted)
+    rounds_used = max(p.rounds for p in fitted)
+    diverged = [x for p in fitted for x in p.diverged]
+    worsened = [x for p in fitted for x in p.worsened]
+    exact_frames = [x for p in fitted for x in p.exact_frames]
+    exact_windows = [x for p in fitted for x in p.exact_windows]
+    stalled_rounds = [x for p in fitted for x in p.stalled]
 
     # ---- outputs and per-frame diagnostics
     tracks, frames = [], {}
