@@ -57,6 +57,36 @@ def test_scene_quality_contract(kind, seed, body_model):
     assert contract_failures(sc.stats) == []
 
 
+def test_the_calibration_scene_turns_every_tracked_segment_both_ways(body_model):
+    """The session's calibration motion (``calibration``, not an interaction): the actors never
+    touch, the contract holds, and every segment a tracker is strapped to turns about the vertical
+    (the spin: tells an offset from the suit's drift) and every one but the flat-footed feet tilts
+    away from it (tells a mounting rotation from the suit's heading)."""
+    from scipy.spatial.transform import Rotation
+
+    from dualhuman_builder.body.mapping import MVN_SEGMENTS
+    from dualhuman_builder.sim.groundtruth import segment_kinematics
+    from dualhuman_builder.sim.scenes import ALL_TYPES, CALIBRATION_TYPE
+
+    assert CALIBRATION_TYPE in ALL_TYPES and CALIBRATION_TYPE not in SCENE_TYPES
+    sc = scene_of(CALIBRATION_TYPE, 0)
+    assert contract_failures(sc.stats) == [] and sc.contact_phases == []
+    d = [np.nan_to_num(x.astype(np.float32), nan=np.inf) for x in sc.distances]
+    assert min(d[0].min(), d[1].min()) > 0.5  # far apart throughout
+    for track in sc.sequence.actors:
+        q = np.asarray(segment_kinematics(track, model=body_model).orientations)
+        for seg in ("Pelvis", "Head", "LeftHand", "RightHand", "LeftFoot", "RightFoot"):
+            rel = Rotation.from_quat(q[:, MVN_SEGMENTS.index(seg)]) * Rotation.from_quat(q[0, MVN_SEGMENTS.index(seg)]).inv()
+            yaw = np.unwrap(rel.as_euler("YXZ")[:, 0])
+            up = rel.apply([0.0, 1.0, 0.0])  # where the segment's world-vertical went: its tilt
+            tilt = np.degrees(np.arccos(np.clip(up[:, 1], -1, 1)))
+            assert np.degrees(np.ptp(yaw)) > 300, seg  # one full spin
+            if not seg.endswith("Foot"):  # the performer keeps soles flat: feet only turn
+                assert tilt.max() > 15.0, (seg, tilt.max())
+    with pytest.raises(ValueError, match="at least 1.2 m"):
+        make_scene(SceneParams(type=CALIBRATION_TYPE, seed=0, fps=FPS, approach_distance=0.8))
+
+
 def test_distances_agree_with_libigl(body_model):
     """The stored signed distances (warp BVH, float16) against igl.signed_distance on the frame
     where the bodies are closest."""

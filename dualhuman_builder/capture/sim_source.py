@@ -30,15 +30,15 @@ class SimSource(Source):
     PARAMS = ("seed", "fps", "tempo", "duration", "approach", "devices")
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
-        from dualhuman_builder.sim.scenes import SCENE_TYPES, Scene, SceneParams, make_scene
+        from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene
         from dualhuman_builder.sim.studio import simulate_studio
 
         super().__init__(url)
         parts, query = parse_source_url(url, self.PARAMS)
         if parts.netloc:
-            if parts.netloc not in SCENE_TYPES:
+            if parts.netloc not in ALL_TYPES:
                 raise SourceError(f"unknown scene type {parts.netloc!r} in {url!r}",
-                                  fix=f"choose one of {', '.join(SCENE_TYPES)}")  # fmt: skip
+                                  fix=f"choose one of {', '.join(ALL_TYPES)}")  # fmt: skip
             params = SceneParams(type=parts.netloc, seed=number_param(query, "seed", int, 0),
                                  fps=number_param(query, "fps", float, 30.0),
                                  tempo=number_param(query, "tempo", float, 1.0),

@@ -7,6 +7,8 @@ Controls are world-frame arrays over ``T`` frames (metres, radians; Y-up, floor 
 * ``trunk (T, 3)``: the whole trunk's bend as a rotation vector in the body's own axes
   (x = left: positive flexes forward; y = up: positive twists left; z = forward: positive bends
   right), spread evenly over anny's five spine bones;
+* ``pelvis (T, 3)`` or None: the pelvis's own tilt, a rotation vector in the same body axes, about
+  the root (the legs follow it; the trunk rides on it);
 * ``look_at (T, 3)`` or None: a point the head turns towards (at most 60 degrees, half in the neck);
 * ``feet["L"|"R"]``: :class:`FootTrack` — ankle (foot bone head) position and foot yaw; the sole
   stays flat;
@@ -55,6 +57,7 @@ class Controls:
     trunk: np.ndarray | None = None
     look_at: np.ndarray | None = None
     arms: dict[str, ArmTrack | None] = field(default_factory=lambda: {"L": None, "R": None})
+    pelvis: np.ndarray | None = None
 
     @property
     def frames(self) -> int:
@@ -68,7 +71,8 @@ class Controls:
                                                    pick(a.flat), pick(a.swivel))
                 for s, a in self.arms.items()}  # fmt: skip
         feet = {s: FootTrack(pick(f.ankle), pick(f.heading)) for s, f in self.feet.items()}
-        return Controls(pick(self.root), pick(self.heading), feet, pick(self.trunk), pick(self.look_at), arms)
+        return Controls(pick(self.root), pick(self.heading), feet, pick(self.trunk), pick(self.look_at), arms,
+                        pick(self.pelvis))  # fmt: skip
 
 
 class Performer:
@@ -137,7 +141,7 @@ class Performer:
         """World positions ``(T, 3)`` of a point fixed to ``bone`` (given at the rest pose with the
         pelvis at the origin) as the body moves under controls ``c`` (trunk and pelvis; arms
         ignored); with ``rest_direction``, also that direction carried along ``(T, 3)``."""
-        local, transl = self.solve(Controls(c.root, c.heading, c.feet, c.trunk))
+        local, transl = self.solve(Controls(c.root, c.heading, c.feet, c.trunk, pelvis=c.pelvis))
         heads, glob = self.sk.fk(local, transl)
         i = self.sk.index(bone)
         point = heads[:, i] + np.einsum("tij,j->ti", glob[:, i], np.asarray(rest_point) - self.sk.rest[i])
@@ -202,6 +206,10 @@ class Performer:
         local = sk.identity(T)
         transl = np.asarray(c.root, dtype=np.float64)
         local[:, 0] = rot_y(np.asarray(c.heading, dtype=np.float64))
+        if c.pelvis is not None:
+            tilt = np.asarray(c.pelvis, dtype=np.float64)
+            angle = np.linalg.norm(tilt, axis=-1)
+            local[:, 0] = local[:, 0] @ axis_angle(np.where(angle[:, None] > 1e-12, tilt, [1.0, 0, 0]), angle)
         if c.trunk is not None:
             bend = np.asarray(c.trunk, dtype=np.float64) / len(SPINE)
             angle = np.linalg.norm(bend, axis=-1)

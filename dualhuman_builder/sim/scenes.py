@@ -13,7 +13,8 @@ Layout: actor 0 starts at the origin facing +Z, actor 1 ``approach_distance`` me
 it (except where a type says otherwise); the floor is y = 0.
 
 Types (:data:`SCENE_TYPES`): ``handshake``, ``hug``, ``high_five``, ``push``, ``pat_on_back``,
-``dance_turn``. Each is a choreography function below; all share the same timing vocabulary
+``dance_turn``; and ``calibration`` (:data:`CALIBRATION_TYPE`), the session's calibration motion
+with no interaction. Each is a choreography function below; all share the same timing vocabulary
 (:mod:`.timeline`) and are scaled by ``tempo``.
 """
 
@@ -31,6 +32,12 @@ from dualhuman_builder.sim.performer import SIDES, ArmTrack, Controls, FootTrack
 from dualhuman_builder.sim.timeline import Step, foot_track, keyframes, window
 
 SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn")
+#: The session's calibration motion (:func:`calibration`): no interaction, each actor on their own
+#: turns every tracked segment, so the trackers' mounts can be solved and carried over to the
+#: session's other takes (``dualhuman sync --mounts-from``). Not one of :data:`SCENE_TYPES`.
+CALIBRATION_TYPE = "calibration"
+#: Every type :class:`SceneParams` accepts.
+ALL_TYPES = (*SCENE_TYPES, CALIBRATION_TYPE)
 #: Gap (m) the contact correction aims for between touching surfaces.
 CONTACT_GAP = 0.003
 #: Distance (m) under which a vertex counts as in contact (the contacts stage's default).
@@ -72,8 +79,8 @@ class SceneParams:
     names: tuple[str, str] = ("actor0", "actor1")
 
     def __post_init__(self):
-        if self.type not in SCENE_TYPES:
-            raise ValueError(f"unknown scene type {self.type!r}; choose one of {', '.join(SCENE_TYPES)}")
+        if self.type not in ALL_TYPES:
+            raise ValueError(f"unknown scene type {self.type!r}; choose one of {', '.join(ALL_TYPES)}")
         if not self.tempo > 0 or not self.fps > 0:
             raise ValueError("tempo and fps must be positive")
 
@@ -681,7 +688,7 @@ def _walk(t, perf: Performer, start_xz, end_xz, heading: float, t0: float, t1: f
 
 
 def _relaxed(perf: Performer, c: Controls, side: str) -> ArmTrack:
-    local, transl = perf.solve(Controls(c.root, c.heading, c.feet, c.trunk))
+    local, transl = perf.solve(Controls(c.root, c.heading, c.feet, c.trunk, pelvis=c.pelvis))
     return perf.relaxed_arm(local, transl, c.heading, side)
 
 
@@ -909,7 +916,7 @@ def hug(t, perfs, params, rng) -> Choreography:
         roles = {"R": "over", "L": "under"} if criss_cross else {s: ("over" if i == tall else "under") for s in SIDES}
         me, other = perfs[i], perfs[1 - i]
         mid = int(np.searchsorted(t, 2.8))
-        local, transl = me.solve(Controls(c.root, c.heading, c.feet, c.trunk).take([mid]))
+        local, transl = me.solve(Controls(c.root, c.heading, c.feet, c.trunk, pelvis=c.pelvis).take([mid]))
         for side in ("R", "L"):
             role = roles[side]
             # palm height on the partner (fraction of its stature), elbow pole (left, up,
@@ -1038,13 +1045,83 @@ def dance_turn(t, perfs, params, rng) -> Choreography:
                         ("Two dancers hold hands and one turns under the other's raised arm.",))  # fmt: skip
 
 
+def calibration(t, perfs, params, rng) -> Choreography:
+    """The session's calibration motion, both actors at once, side by side ``approach_distance``
+    (default 2 m) apart and never touching: from a relaxed stand each bows, bends to either side
+    and twists its trunk (the pelvis tipping, rolling and turning with it over planted feet), nods,
+    raises both arms forward, squats, opens the arms out to the sides, then turns once to its right
+    on the spot in ten small steps. Every tracked segment tilts (which tells a tracker's
+    mounting rotation from the suit's heading) and every one turns about the vertical (which
+    tells a mount's offset from the suit's position drift); see :data:`CALIBRATION_TYPE`."""
+    gap = params.approach_distance or 2.0
+    if gap < 1.2:
+        raise ValueError(f"calibration actors stand {gap:.2f} m apart; they need at least 1.2 m to move freely")
+    T = len(t)
+    t_turn0, t_turn1, n_steps = 6.2, 9.2, 10
+    controls, stances = [], []
+    for i, p in enumerate(perfs):
+        centre = np.array([-gap * i, p.standing_height(), 0.0])  # B stands on A's right
+        feet, stance = {}, {}
+        dt = (t_turn1 - t_turn0) / n_steps
+        for s in SIDES:
+            r = p.sk.rest[p.sk.index(f"foot.{s}")]
+            place = lambda yaw, r=r, c=centre: c + rot_y(np.array(yaw)) @ np.array([r[0], 0.0, r[2]])  # noqa: E731
+            steps = []
+            for k in range(n_steps):  # right foot on even steps, left on odd; the last one squares up
+                if (k % 2 == 0) == (s == "R") or k == n_steps - 1:
+                    yaw = -(k + 1) * 2 * np.pi / n_steps
+                    q = place(yaw)
+                    steps.append(Step(s, t_turn0 + k * dt, t_turn0 + (k + 1) * dt, (q[0], q[2]), yaw, lift=0.04))
+            q0 = place(0.0)
+            pos, yaw_t, st = foot_track(t, (q0[0], q0[2]), 0.0, p.ankle_height[s], steps, s)
+            feet[s], stance[s] = FootTrack(pos, yaw_t), st
+        heading = 0.5 * (feet["L"].heading + feet["R"].heading)
+        # knees bent a little while the pelvis tips (a tipped pelvis lifts one hip or the other), then a
+        # squat with the arms out in front (thighs, shins and feet turn each their own way)
+        dip = keyframes(t, [0.2, 0.6, 4.1, 4.5, 4.9, 5.3, 5.7], [0.0, 0.05, 0.05, 0.03, 0.2, 0.2, 0.0])
+        root = p.reachable_root(Controls(np.tile(centre, (T, 1)) - dip[:, None] * [0.0, 1.0, 0.0], heading, feet),
+                                fps=1.0 / (t[1] - t[0]))  # fmt: skip
+        # trunk (left, up, forward axes): bow, bend left and right, twist both ways
+        trunk = keyframes(t, [0.5, 1.1, 1.6, 2.1, 2.6, 3.1, 3.6, 4.1, 4.5],
+                          [[0, 0, 0], [0.45, 0, 0], [0, 0, 0], [0, 0, -0.25], [0, 0, 0.25], [0, 0, 0],
+                           [0, 0.45, 0], [0, -0.45, 0], [0, 0, 0]])  # fmt: skip
+        # the pelvis: tipped forward with the bow, rolled with the side bends, turned with the twists
+        # (the feet stay put), then level
+        pelvis = keyframes(t, [0.5, 1.1, 1.6, 2.1, 2.6, 3.1, 3.6, 4.1, 4.5],
+                           [[0, 0, 0], [0.3, 0, 0], [-0.1, 0, 0], [0, 0, -0.2], [0, 0, 0.2], [0, 0, 0], [0, 0.3, 0],
+                            [0, -0.3, 0], [0, 0, 0]])  # fmt: skip
+        c = Controls(root, heading, feet, trunk=trunk, pelvis=pelvis)
+        eye = _head_of(p, root)
+        nod = keyframes(t, [3.9, 4.3, 4.8, 5.2], [0.0, -0.8, 0.6, 0.0])  # look down, then up
+        c.look_at = eye + p.body_dir(heading, np.column_stack([np.zeros(T), nod, np.ones(T)]))
+        # both arms: hanging, forward to shoulder height, out to the sides, down again
+        w = keyframes(t, [4.4, 4.9, 5.7, 6.1], [0.0, 1.0, 1.0, 0.0])
+        out = keyframes(t, [5.3, 5.7], [0.0, 1.0])
+        for s, sign in SIDES.items():
+            sh = p.sk.rest[p.sk.index(f"upperarm01.{s}")] + [0.0, p.floor_offset, 0.0]
+            reach = 0.85 * (p.arms[s].reach + np.linalg.norm(p.hand[s].palm_offset))
+            ahead = np.array([sh[0], sh[1], sh[2] + reach])
+            side = np.array([sh[0] + sign * reach, sh[1], sh[2]])
+            local = (1 - out)[:, None] * ahead + out[:, None] * side + [0.0, -p.floor_offset, 0.0]
+            palm = p.body_point(root, heading, local)
+            fingers = p.body_dir(heading, (1 - out)[:, None] * [0.0, 0.0, 1.0] + out[:, None] * [sign, 0.0, 0.0])
+            c.arms[s] = _arm(p, c, s, w, palm, p.body_dir(heading, (sign * 0.3, -1.0, -0.3)),
+                             p.body_dir(heading, (0.0, -1.0, 0.0)), fingers)  # fmt: skip
+        controls.append(c)
+        stances.append(stance)
+    return Choreography(controls, stances, {"trunk": (0.5, 4.5), "nod": (3.9, 5.2), "arms": (4.4, 6.1), "squat": (4.5, 5.7),
+                                            "turn": (t_turn0, t_turn1)}, [], [], ("calibration",),
+                        ("Two people, apart, bow, bend, twist, squat, raise their arms and turn on the spot.",))  # fmt: skip
+
+
 def _check_distance(d0: float, d1: float, what: str) -> None:
     if d0 < d1:
         raise ValueError(f"approach distance {d0:.2f} m is closer than the {what} distance {d1:.2f} m")
 
 
-NATURAL_DURATION = {"handshake": 4.0, "hug": 5.2, "high_five": 3.2, "push": 3.6, "pat_on_back": 4.0, "dance_turn": 6.0}
+NATURAL_DURATION = {"handshake": 4.0, "hug": 5.2, "high_five": 3.2, "push": 3.6, "pat_on_back": 4.0, "dance_turn": 6.0,
+                    "calibration": 9.6}
 CHOREOGRAPHIES: dict[str, Callable[..., Choreography]] = {
     "handshake": handshake, "hug": hug, "high_five": high_five, "push": push, "pat_on_back": pat_on_back,
-    "dance_turn": dance_turn,
+    "dance_turn": dance_turn, "calibration": calibration,
 }  # fmt: skip
