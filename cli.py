@@ -332,8 +332,11 @@ def scene():
 
 
 @scene.command("make")
-@click.option("--type", "scene_type", type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn"]),
-              default="handshake", show_default=True, help="The interaction.")  # fmt: skip
+@click.option("--type", "scene_type",
+              type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration"]),
+              default="handshake", show_default=True,
+              help="The interaction; or 'calibration', the session's calibration motion (the actors apart, turning every "
+                   "tracked segment: see `dualhuman sync --mounts-from`).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Draws the two actors' shapes and small variations.")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
 @click.option("--tempo", type=float, default=1.0, show_default=True, help="Speed of the motion (>1 faster).")
@@ -687,13 +690,20 @@ def _take_options(f):
     f = click.option("--no-trackers", is_flag=True, help="Ignore the trackers (fusion falls back to the suit's drifting positions; flagged).")(f)
     f = click.option("--no-suit-chain", is_flag=True,
                      help="Do not solve the suit's segment misalignments with the tracker mounts (to see what they buy).")(f)
+    f = click.option("--mounts-from", "mounts_from", metavar="TAKE", default=None,
+                     help="The session's calibration take (actors bowing, twisting, raising their arms and turning on "
+                          "the spot; `sim://calibration` simulates one): each tracker worn there by the same actor on "
+                          "the same segment keeps the mount solved there. A take whose actors hardly move then still "
+                          "gets its heading and its trackers' offsets right; a tracker strapped again since is found "
+                          "and solved afresh.")(f)
     f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
     return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
 
 
 @main.command()
 @_take_options
-def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool):
+def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, mounts_from: str | None,
+         force: bool):  # fmt: skip
     """Put a take's streams on one timeline and calibrate the trackers.
 
     Per stream: its clock's offset and drift against the host (a robust fit of the lower envelope
@@ -704,20 +714,26 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
     where its measured orientations put them, tens of millimetres off, and the offsets would
     otherwise absorb that). Writes sync.npz and sync.json (estimates with 1-sigma uncertainties).
 
-    Example:  dualhuman sync WS --take T001
+    An actor who hardly turns a segment (standing still while patted, shaking hands) leaves the
+    trackers' mounting rotations and shared offset to where the protocol says they are strapped;
+    start the session with a calibration take and pass it with --mounts-from.
+
+    Examples:  dualhuman sync WS --take T001
+               dualhuman sync WS --take T002 --mounts-from T001
     """
     from dualhuman_builder.fit.stages import run_sync
     from dualhuman_builder.workspace import Workspace
 
     with Workspace.open(workspace) as ws:
         res = run_sync(ws, take, fps=fps, use_trackers=not no_trackers, force=force, log=console.print,
-                       suit_chain=not no_suit_chain)  # fmt: skip
+                       suit_chain=not no_suit_chain, mounts_from=mounts_from)  # fmt: skip
         console.print(f"sync {'up to date' if res.skipped else 'done'}: {res.artifacts.get('sync.json')}", highlight=False)
 
 
 @main.command()
 @_take_options
-def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool):
+def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, mounts_from: str | None,
+         force: bool):  # fmt: skip
     """Fuse each actor's suit and trackers into one drift-free skeleton.
 
     Suit orientations (heading-corrected against the tracker world, each segment turned by the
@@ -731,7 +747,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 
     with Workspace.open(workspace) as ws:
         res = run_fuse(ws, take, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
-                       suit_chain=not no_suit_chain)  # fmt: skip
+                       suit_chain=not no_suit_chain, mounts_from=mounts_from)  # fmt: skip
         console.print(f"fuse {'up to date' if res.skipped else 'done'}", highlight=False)
 
 
@@ -752,8 +768,9 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
               help="Processes to fit the take's segments on, this one included (1: only this one). Default: one per "
                    "CPU, no more than there are segments (two windows each) or than leave ~2 GiB of available memory "
                    "each; 1 on a GPU. The result does not depend on it.")
-def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, force: bool, no_collision: bool,
-        relaxed_hands: bool, exact_contacts: bool, window: int, device: str, threads: int, workers: int | None):  # fmt: skip
+def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, mounts_from: str | None, force: bool,
+        no_collision: bool, relaxed_hands: bool, exact_contacts: bool, window: int, device: str, threads: int,
+        workers: int | None):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
     One shape per actor from the suit's segment lengths (and the registered height); per frame a
@@ -776,7 +793,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
                     window=window, device=device, torch_threads=threads)  # fmt: skip
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
-                      suit_chain=not no_suit_chain, workers=workers)  # fmt: skip
+                      suit_chain=not no_suit_chain, workers=workers, mounts_from=mounts_from)  # fmt: skip
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
 
 

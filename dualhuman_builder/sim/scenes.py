@@ -614,7 +614,7 @@ def describe_scene(scene: Scene) -> dict:
     summary = (f"{p.type} seed {p.seed}: {seq.num_frames} frames at {seq.fps:g} fps ({data['duration_s']:.2f} s), "
                f"actors {heights[0]:.2f} m and {heights[1]:.2f} m")  # fmt: skip
     lines = ["phases: " + ", ".join(f"{k} {a:.2f}-{b:.2f} s" for k, (a, b) in scene.phases.items()),
-             "contact phases: " + ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in scene.contact_phases)]  # fmt: skip
+             "contact phases: " + (", ".join(f"{a:.2f}-{b:.2f} s" for a, b in scene.contact_phases) or "none")]  # fmt: skip
     if stats:
         lines.append(f"max penetration {1000 * stats['max_penetration_m']:.1f} mm, max stance-foot slide "
                      f"{1000 * stats['max_stance_slide_m']:.2f} mm/frame, contact on "
