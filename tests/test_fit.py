@@ -4,6 +4,7 @@ loopback transports (simulated devices -> UDP/pty/virtual CAN -> MCAP -> sync ->
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -210,6 +211,58 @@ def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
     assert len(warned) == 2
     for name, std in stds.items():
         assert any(w.startswith(f"{name}: heading") and f"{std:.1f} deg" in w for w in warned), warned
+
+
+def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, model, tmp_path):
+    """``dualhuman sync WS --take T --mounts-from CAL``: the session's calibration take (the same
+    simulated devices, seed 1) is synced first, and every tracker of the handshake keeps the mount
+    solved there. The handshake's actors hardly turn a segment, so their heading and the trackers'
+    shared offset otherwise rest on the sites' prior (~14 mm); carried, the shared offset is known
+    to a few millimetres and each mounting rotation to the calibration's accuracy."""
+    from click.testing import CliRunner
+
+    import cli
+    from dualhuman_builder.capture.log.reader import read_columns
+    from dualhuman_builder.fit.evaluate import mount_errors, record_simulated_take
+    from dualhuman_builder.sim.studio import simulate_studio
+    from dualhuman_builder.sync.timeline import SyncResult
+    from dualhuman_builder.workspace import Workspace
+
+    take, scene = recorded
+    cal_take, _ = record_simulated_take("calibration", 1, tmp_path / "cal", fps=15.0, model=model)  # the same devices
+    ws_root = tmp_path / "ws"
+    with Workspace.init(ws_root) as ws:
+        ws.add_take("CAL", files=[cal_take])
+        ws.add_take("SHAKE", files=[take])
+
+    def run(*args):
+        return CliRunner().invoke(cli.main, [str(a) for a in args], catch_exceptions=False)
+
+    res = run("sync", ws_root, "--take", "SHAKE", "--fps", 15, "--mounts-from", "CAL")
+    assert res.exit_code == 0, res.output
+    assert "6 of 6 tracker mounts carried over from CAL" in res.output
+    with Workspace.open(ws_root) as ws:
+        assert ws.stage_record("sync", "CAL")["status"] == "done"  # synced first, on its own
+        report = json.loads(ws.artifacts("sync", "SHAKE")["sync.json"].read_text())
+        sync = SyncResult.load(ws.artifacts("sync", "SHAKE")["sync.npz"])
+        cal = SyncResult.load(ws.artifacts("sync", "CAL")["sync.npz"])
+    assert report["mounts_from"]["take"] == "CAL"
+    for name in ("sim-a", "sim-b"):
+        assert len(report["mounts_from"][name]["carried"]) == 6 and report["mounts_from"][name]["strapped_again"] == []
+        assert report["common_offset"][name]["std_mm"] < 6.0, report["common_offset"]
+        mine, theirs = sync.actor(name), cal.actor(name)
+        for k, serial in enumerate(mine.serials):  # kept as solved on the calibration take
+            j = theirs.serials.index(serial)
+            assert np.array_equal(mine.mounts.rotations[k], theirs.mounts.rotations[j])
+    errs = mount_errors(sync, simulate_studio(scene.sequence, seed=1))
+    assert errs["rotation_deg"].max() < 0.8, errs
+    alone = synchronise(read_columns(take), fps=15.0).report["common_offset"]
+    assert all(alone[n]["std_mm"] > 2 * report["common_offset"][n]["std_mm"] for n in alone), alone
+    # a calibration take that is not in the workspace, or the take itself: clear errors
+    res = CliRunner().invoke(cli.main, ["sync", str(ws_root), "--take", "SHAKE", "--mounts-from", "NOPE"])
+    assert res.exit_code != 0 and "no take 'NOPE'" in res.output
+    res = CliRunner().invoke(cli.main, ["sync", str(ws_root), "--take", "SHAKE", "--mounts-from", "SHAKE"])
+    assert res.exit_code != 0 and "cannot carry the mounts of itself" in res.output
 
 
 def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):

@@ -21,7 +21,7 @@ from dualhuman_builder.sync.lag import (
     estimate_lag,
     linear_speed,
 )
-from dualhuman_builder.sync.mount import MountCalibration, SuitChain, calibrate_mounts
+from dualhuman_builder.sync.mount import MOVED_DEG, CarriedMounts, MountCalibration, SuitChain, calibrate_mounts
 
 TRACKER_CLOCK = DeviceClock(offset_s=0.25, drift_ppm=30.0, latency_s=0.004, jitter_s=0.001)
 #: host seconds per device second for TRACKER_CLOCK, as ppm
@@ -416,7 +416,8 @@ def still_actor(seed, duration=20.0, rate=30.0):
         seg_rot[:, k] = (R.from_rotvec(noise[:, k]) * true_seg).as_quat()
         trk_rot[:, k] = (Y * true_seg * mounts[k] * R.from_rotvec(rng.normal(0, math.radians(0.3) / math.sqrt(3), (T, 3)))).as_quat()
         trk_pos[:, k] = Y.apply(seg_pos[:, k] + true_seg.apply(offsets[k])) + [1.0, 0, -2.0] + rng.normal(0, 0.001, (T, 3))
-    return (t, seg_rot, seg_pos, trk_rot, trk_pos, np.ones((T, K), bool)), {"psi": psi, "mounts": mounts, "sites": sites}
+    return (t, seg_rot, seg_pos, trk_rot, trk_pos, np.ones((T, K), bool)), {"psi": psi, "mounts": mounts, "sites": sites,
+                                                                           "offsets": offsets}  # fmt: skip
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -459,6 +460,80 @@ def test_the_trackers_common_offset_is_known_from_turning_segments_only():
     c_still, c_turning = float(still.common_offset_std_m), float(turning.common_offset_std_m)
     assert 3e-3 < c_still < 16e-3 and c_turning < 1e-3 and c_still > 20 * c_turning, (c_still, c_turning)
     assert still.as_dict()["common_offset_std_mm"] == pytest.approx(float(still.common_offset_std_m) * 1000, abs=1e-3)
+
+
+def _carried(truth, K=6, rot_deg=0.2, offset_mm=2.0, seed=7, moved=None):
+    """Mounts as a calibration take would hand them over: the truth off by ``rot_deg`` and
+    ``offset_mm`` (per axis), with those as their stated 1-sigma; ``moved``: a tracker whose carried
+    rotation is 10 degrees off (strapped again since)."""
+    rng = np.random.default_rng(seed)
+    rots = truth["mounts"] * R.from_rotvec(rng.normal(0, math.radians(rot_deg) / math.sqrt(3), (K, 3)))
+    if moved is not None:
+        q = rots.as_quat()
+        q[moved] = (rots[moved] * R.from_rotvec([0.0, 0.0, math.radians(10.0)])).as_quat()
+        rots = R.from_quat(q)
+    offsets = truth["offsets"] + rng.normal(0, offset_mm / 1000, (K, 3))
+    return CarriedMounts(np.ones(K, bool), rots.as_quat(), offsets, np.full(K, rot_deg), np.full(K, offset_mm * math.sqrt(3) / 1000),
+                         source="calibration")  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_still_actor_keeps_the_mounts_of_a_calibration_take(seed):
+    """Standing still, an actor's heading and its trackers' shared offset rest on the sites' 2 cm
+    prior (~1 degree, ~14 mm): the mounts of a calibration take of the same session fix both. The
+    carried rotations are kept as they are; the heading comes from them, to their spread over
+    sqrt(6); the offsets stay within the calibration's millimetres."""
+    inputs, truth = still_actor(seed)
+    alone = calibrate_mounts(*inputs, sites=truth["sites"])
+    carried = _carried(truth)
+    cal = calibrate_mounts(*inputs, sites=truth["sites"], carried=carried)
+    assert cal.carried.all() and not cal.carry_rejected.any()
+    assert np.allclose(np.abs(np.sum(cal.rotations * carried.rotations, axis=1)), 1.0)  # kept as carried
+    err = abs(math.degrees(float(np.mean(cal.heading_rad - truth["psi"]))))
+    assert err < 0.15 and float(cal.heading_std_deg) == pytest.approx(0.2 / math.sqrt(6))
+    common = [np.linalg.norm(np.mean(c.translations - truth["offsets"], axis=0)) for c in (cal, alone)]
+    # (this actor's 2-degree sway tells the data ~5 mm of it; the calibration's 4 mm-per-axis floor,
+    # CARRIED_FLOOR_M, lets the data still count)
+    assert float(cal.common_offset_std_m) < 0.6 * float(alone.common_offset_std_m)
+    assert common[0] < common[1] and common[0] < 2 * float(cal.common_offset_std_m), common
+    assert np.linalg.norm(cal.translations - truth["offsets"], axis=1).max() < 0.008
+    d = cal.as_dict()
+    assert d["carried"] == [True] * 6 and d["carry_rejected"] == [False] * 6
+    json.dumps(d, allow_nan=False)
+
+
+def test_a_tracker_strapped_again_since_the_calibration_is_solved_afresh():
+    inputs, truth = still_actor(0)
+    carried = _carried(truth, moved=2)
+    cal = calibrate_mounts(*inputs, sites=truth["sites"], carried=carried)
+    assert cal.carry_rejected.tolist() == [False, False, True, False, False, False]
+    assert cal.carried.tolist() == [True, True, False, True, True, True]
+    rot_err = np.degrees((R.from_quat(cal.rotations).inv() * truth["mounts"]).magnitude())
+    assert rot_err[2] < 1.0 and rot_err.max() < 1.0, rot_err  # the moved one from this take, the heading from the rest
+    assert abs(math.degrees(float(np.mean(cal.heading_rad - truth["psi"])))) < 0.3
+    assert MOVED_DEG < 10.0
+
+
+def test_carried_mounts_are_picked_by_tracker_and_checked():
+    inputs, truth = mount_scene(1, rate=30.0)
+    cal = calibrate_mounts(*inputs)
+    keys = [(f"S{k}", f"seg{k}") for k in range(6)]
+    # this take: tracker S5 now on another segment, a new tracker S9, S0..S3 in another order
+    mine = [keys[3], keys[0], ("S5", "other"), keys[2], ("S9", "seg9"), keys[1]]
+    c = CarriedMounts.from_calibration(cal, keys, mine, "T001")
+    assert c.carried.tolist() == [True, True, False, True, False, True] and c.source == "T001"
+    assert np.array_equal(c.rotations[0], cal.rotations[3]) and np.array_equal(c.translations[5], cal.translations[1])
+    assert np.isnan(c.rotations[2]).all() and np.isnan(c.translation_std_m[4])
+    with pytest.raises(ValueError, match="carried mounts are for 6 trackers"):
+        calibrate_mounts(*[a[:, :5] if getattr(a, "ndim", 1) > 1 else a for a in inputs], carried=c)
+    bad = CarriedMounts(c.carried, c.rotations * 2, c.translations, c.rotation_std_deg, c.translation_std_m)
+    with pytest.raises(ValueError, match="unit quaternions"):
+        calibrate_mounts(*inputs, carried=bad)
+    # nothing carried: the same answer as without
+    none = CarriedMounts.from_calibration(cal, keys, [("X", "y")] * 6)
+    again = calibrate_mounts(*inputs, carried=none)
+    assert np.array_equal(again.rotations, cal.rotations) and np.array_equal(again.translations, cal.translations)
+    assert not again.carried.any()
 
 
 def test_a_turning_actors_heading_follows_its_orientations_over_a_skewed_constellation():

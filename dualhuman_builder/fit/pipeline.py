@@ -46,9 +46,12 @@ def shape_dict(cal) -> dict:
 
 def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool = True, config: FitConfig = FitConfig(),
                  known_shapes: dict | None = None, statures: dict | None = None, genders: dict | None = None,
-                 model=None, progress: Callable[[str], None] | None = None, workers: int | None = None) -> TakeFit:  # fmt: skip
+                 model=None, progress: Callable[[str], None] | None = None, workers: int | None = None,
+                 mounts_from=None) -> TakeFit:  # fmt: skip
     """Run the whole path on a take file (or its :func:`read_columns`); the fit on ``workers``
-    processes (:func:`~dualhuman_builder.fit.fitter.fit_actors`)."""
+    processes (:func:`~dualhuman_builder.fit.fitter.fit_actors`). ``mounts_from``: the
+    :class:`~dualhuman_builder.sync.timeline.SyncResult` of the session's calibration take, whose
+    tracker mounts carry over (:func:`~dualhuman_builder.sync.timeline.synchronise`)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.fit.fitter import fit_actors, inputs_from_fused
@@ -58,7 +61,7 @@ def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool 
     say = progress or (lambda _m: None)
     model = model or get_body_model()
     columns = read_columns(take) if not isinstance(take, dict) else take
-    sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=say)
+    sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=say, mounts_from=mounts_from)
     fused = [fuse_actor(a, sync.times_s, fps) for a in sync.actors]
     shapes = calibrate_shapes(model, fused, known_shapes, statures, genders)
     say("shapes: " + ", ".join(f"{k} {getattr(v, 'stature_m', 0):.3f} m" for k, v in shapes.items()))

@@ -6,7 +6,7 @@ Artifacts (under ``WS/artifacts/TAKE/_take/<stage>/``):
 
 * ``sync``: ``sync.npz`` (:class:`~dualhuman_builder.sync.timeline.SyncResult`: every stream on the
   timeline, tracker mounts) and ``sync.json`` (clock offsets and drifts, lags, mounts, with
-  uncertainties);
+  uncertainties; with ``mounts_from``, which trackers kept the calibration take's mounts);
 * ``fuse``: ``<actor>.skeleton.npz`` (:class:`~dualhuman_builder.tracks.SkeletonTrack`, tracker
   world) and ``fuse.json`` (per tracker: valid, rejected and bridged frames);
 * ``fit``: ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence` of the two
@@ -36,22 +36,40 @@ def _take_file(ws, take: str):
 
 
 def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force: bool = False, log: Callable = print,
-             take_file=None, depends_on=(), suit_chain: bool = True):  # fmt: skip
+             take_file=None, depends_on=(), suit_chain: bool = True, mounts_from: str | None = None,
+             mounts_take_file=None, mounts_depends_on=()):  # fmt: skip
     """``take_file``: read this .mcap instead of the take's registered file (the demo records its
     take as an artifact of its ``capture`` stage, named in ``depends_on``). ``suit_chain=False``:
-    do not solve the suit's segment misalignments with the mounts (:func:`synchronise`)."""
+    do not solve the suit's segment misalignments with the mounts (:func:`synchronise`).
+    ``mounts_from``: the session's calibration take, synced first if needed (from
+    ``mounts_take_file`` / ``mounts_depends_on`` as for ``take_file``), whose tracker mounts carry
+    over; a change of its sync makes this one stale."""
     from dualhuman_builder.capture.log.reader import read_columns
-    from dualhuman_builder.sync.timeline import synchronise
+    from dualhuman_builder.sync.timeline import SyncResult, synchronise
+
+    extra: dict = {} if suit_chain else {"suit_chain": False}
+    if mounts_from:
+        if mounts_from == take:
+            raise WorkspaceError(f"take {take!r} cannot carry the mounts of itself",
+                                 fix="name the session's calibration take with --mounts-from")  # fmt: skip
+        ws.take(mounts_from)  # raises a clear error for an unknown take
+        run_sync(ws, mounts_from, fps=fps, log=log, take_file=mounts_take_file, depends_on=mounts_depends_on,
+                 suit_chain=suit_chain)  # fmt: skip
+        rec = ws.stage_record("sync", mounts_from)
+        extra.update(mounts_from=mounts_from, mounts_sha256=rec["artifacts"]["sync.npz"]["sha256"])
 
     def compute(out):
         columns = read_columns(take_file) if take_file is not None else _read(ws, take)
-        sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=log, suit_chain=suit_chain)
+        cal = SyncResult.load(ws.artifacts("sync", mounts_from)["sync.npz"]) if mounts_from else None
+        sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=log, suit_chain=suit_chain,
+                           mounts_from=cal, mounts_from_take=mounts_from or "")  # fmt: skip
         sync.save(out.path("sync.npz"))
         out.path("sync.json").write_text(json.dumps(sync.report, indent=2, default=_json))
         return {"frames": int(len(sync.times_s)), "actors": [a.actor for a in sync.actors],
-                "trackers": {a.actor: len(a.serials) for a in sync.actors}}  # fmt: skip
+                "trackers": {a.actor: len(a.serials) for a in sync.actors},
+                **({"mounts_from": sync.report.get("mounts_from", {})} if mounts_from else {})}  # fmt: skip
 
-    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers, **({} if suit_chain else {"suit_chain": False})},
+    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers, **extra},
                         depends_on=list(depends_on), version=STAGE_VERSION, force=force)  # fmt: skip
 
 

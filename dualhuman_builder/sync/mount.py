@@ -50,6 +50,13 @@ _SCAN_STEP_DEG = 2.0
 _SCAN_FINE_DEG = 0.5
 #: Block length (s) used to account for correlated residuals in the uncertainties.
 _BLOCK_S = 1.0
+#: A carried mount (:class:`CarriedMounts`) whose rotation residuals on this take have a median
+#: above this (deg) is taken for a tracker strapped again since the calibration take, and solved
+#: afresh (residuals are ~1 deg for a tracker that stayed put).
+MOVED_DEG = 3.0
+#: Floor (m, per axis) of a carried mount translation's prior std: the calibration take's own
+#: uncertainty, but never trusted below this.
+CARRIED_FLOOR_M = 0.004
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +78,10 @@ class MountCalibration:
     ``chain_misalignment_rad (A, 3)`` each one's ``eps`` (rotation vector in the segment's measured
     frame: ``R_true = R_meas exp(-[eps]x)``) and ``chain_std_deg (A,)`` its spread (norm) under the
     solve's covariance, like ``translation_std_m`` before its inflation: too small where the prior
-    decides; empty without. ``common_offset_std_m``: 1-sigma (m, norm) of the part all trackers' offsets share, seen
+    decides; empty without. With :class:`CarriedMounts`: ``carried (K,)`` the trackers whose mount
+    came from the calibration take (their rotation is that take's, their translation its value
+    refined by this take under its uncertainty), ``carry_rejected (K,)`` those offered but found
+    strapped again (solved afresh); both empty (or all False) without. ``common_offset_std_m``: 1-sigma (m, norm) of the part all trackers' offsets share, seen
     in the world over the take (their mean world position relative to their segments): what the
     actor's root is known to. An actor who turns no segment cannot tell it from the suit's drift, so
     it rests on the sites' prior (about ``site_prior_m * sqrt(3 / K)``). ``outliers (T, K)``: valid samples
@@ -100,6 +110,8 @@ class MountCalibration:
     chain_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     chain_std_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     common_offset_std_m: np.ndarray = field(default_factory=lambda: np.asarray(float("nan")))
+    carried: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    carry_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def __post_init__(self):
         for name in self.__dataclass_fields__:
@@ -185,7 +197,64 @@ class MountCalibration:
             "chain_misalignment_deg": np.degrees(self.chain_misalignment_rad).tolist(),
             "chain_std_deg": self.chain_std_deg.tolist(),
             "common_offset_std_mm": round(float(self.common_offset_std_m) * 1000, 3) if np.isfinite(self.common_offset_std_m) else None,
+            "carried": self.carried.tolist(),
+            "carry_rejected": self.carry_rejected.tolist(),
         }
+
+
+@dataclass(frozen=True, eq=False)
+class CarriedMounts:
+    """Mounts solved on a calibration take of the same session, for :func:`calibrate_mounts` on
+    another take (``K`` trackers, in that take's order): trackers strapped on once per session
+    keep their mounts, and the suit's segment misalignments (its sensor-to-segment calibration)
+    are the session's too.
+
+    A take whose actor hardly turns a segment cannot tell a tracker's mounting rotation from the
+    suit's heading, nor the trackers' shared offset from the suit's position drift; a calibration
+    take whose actors bow, twist, raise their arms and turn on the spot can. ``carried (K,)``
+    bool: which trackers have a mount here; ``rotations (K, 4)`` xyzw and ``translations (K, 3)``
+    m (segment frame), ``rotation_std_deg (K,)`` and ``translation_std_m (K,)`` (1-sigma, norms),
+    NaN where not carried; ``chain``: suit segment index (MVN order) -> misalignment ``eps (3,)``
+    rad (:class:`SuitChain`); ``source``: the calibration take's name, for reports.
+    :meth:`from_calibration` picks a calibration's mounts by tracker serial."""
+
+    carried: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    rotation_std_deg: np.ndarray
+    translation_std_m: np.ndarray
+    chain: dict = field(default_factory=dict)
+    source: str = ""
+
+    @classmethod
+    def from_calibration(cls, cal: "MountCalibration", cal_keys, keys, source: str = "") -> "CarriedMounts":
+        """The mounts of ``cal`` (a :class:`MountCalibration` of trackers ``cal_keys``, e.g.
+        ``(serial, segment)`` pairs) for trackers ``keys`` of another take: a tracker is carried
+        where its key appears in ``cal_keys`` and ``cal`` calibrated it."""
+        cal_keys, keys = list(cal_keys), list(keys)
+        K = len(keys)
+        out = {"carried": np.zeros(K, bool), "rotations": np.full((K, 4), np.nan), "translations": np.full((K, 3), np.nan),
+               "rotation_std_deg": np.full(K, np.nan), "translation_std_m": np.full(K, np.nan)}  # fmt: skip
+        for k, key in enumerate(keys):
+            if key in cal_keys:
+                j = cal_keys.index(key)
+                if cal.calibrated[j] and np.all(np.isfinite(cal.rotations[j])) and np.all(np.isfinite(cal.translations[j])):
+                    out["carried"][k] = True
+                    for name in ("rotations", "translations", "rotation_std_deg", "translation_std_m"):
+                        out[name][k] = getattr(cal, name)[j]
+        chain = {int(g): np.asarray(e, np.float64).copy() for g, e in zip(cal.chain_segments, cal.chain_misalignment_rad)}
+        return cls(chain=chain, source=source, **out)
+
+    def check(self, K: int) -> None:
+        if self.carried.shape != (K,) or self.rotations.shape != (K, 4) or self.translations.shape != (K, 3) \
+                or self.rotation_std_deg.shape != (K,) or self.translation_std_m.shape != (K,):  # fmt: skip
+            raise ValueError(f"carried mounts are for {self.carried.shape[0]} trackers with shapes "
+                             f"{self.rotations.shape}, {self.translations.shape}; this take has {K}")  # fmt: skip
+        c = self.carried
+        if not (np.all(np.isfinite(self.rotations[c])) and np.all(np.isfinite(self.translations[c]))):
+            raise ValueError("carried mounts must be finite where carried")
+        if np.any(np.abs(np.linalg.norm(self.rotations[c], axis=-1) - 1.0) > 1e-3):
+            raise ValueError("carried mount rotations must be unit quaternions")
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,14 +308,21 @@ class _Design:
     :class:`SuitChain`, each chain segment's misalignment ``eps_a`` (rad), with their priors and
     each tracker's design ``J_k(t)`` (:func:`_solve_translation`)."""
 
-    def __init__(self, K, m0, m_prec, chain: SuitChain | None, rows: np.ndarray, obs_per_sample: float):
+    def __init__(self, K, m0, m_prec, chain: SuitChain | None, rows: np.ndarray, obs_per_sample: float,
+                 eps0: dict | None = None):  # fmt: skip
+        """``m_prec``: the mounts' prior precision (1/m^2, per-sample units), one for all or one per
+        tracker ``(K,)``; ``eps0``: chain segment -> prior mean of its misalignment (rad; default 0)."""
         self.K = K
         segs = chain.segments if chain is not None else ()
         self.segments = segs
         P = 3 * K + 3 * len(segs)
         self.prior_mean = np.zeros(P)
         self.prior_mean[: 3 * K] = np.asarray(m0, np.float64).ravel()
-        self.prior_prec = np.full(P, float(m_prec))
+        self.prior_prec = np.zeros(P)
+        self.prior_prec[: 3 * K] = np.repeat(np.broadcast_to(np.asarray(m_prec, np.float64), (K,)), 3)
+        for i, a in enumerate(segs):
+            if eps0 and a in eps0:
+                self.prior_mean[3 * K + 3 * i: 3 * K + 3 * i + 3] = eps0[a]
         self.links: dict[tuple[int, int], np.ndarray] = {}
         self.paths: list[list[tuple[tuple[int, int], int]]] = [[] for _ in range(K)]
         if chain is None:
@@ -530,7 +606,7 @@ def _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid):
 def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_spacing_s: float = 1.0,
                      drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = 0.05 / math.sqrt(60.0),
                      rounds: int = 4, sites=None, site_prior_m: float = SITE_PRIOR_M,
-                     chain: SuitChain | None = None) -> MountCalibration:  # fmt: skip
+                     chain: SuitChain | None = None, carried: CarriedMounts | None = None) -> MountCalibration:  # fmt: skip
     """Estimate tracker mounts, the suit's heading and its position drift (model in the module
     docstring).
 
@@ -566,6 +642,18 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     each one's constant misalignment ``eps`` (prior ``N(0, chain.prior_deg^2)`` per axis) is solved
     with the mounts and the drift, so that a limb the suit places with misaligned orientations
     does not end up in the offsets (the ``chain_*`` fields of the result).
+
+    ``carried`` (:class:`CarriedMounts`, optional): mounts solved on a calibration take of the same
+    session. A carried tracker keeps its mounting rotation; the heading is fitted to the carried
+    trackers' orientations alone (no constellation search: the carried rotations fix it, to
+    ``heading_std_deg`` = their spread over sqrt(count)); its translation's prior is centred on the
+    carried one with the calibration's uncertainty (per axis ``translation_std_m / sqrt(3)``, at
+    least :data:`CARRIED_FLOOR_M`) instead of the site's; the chain's misalignment priors are
+    centred on the calibration's. A carried tracker whose rotation residuals have a median above
+    :data:`MOVED_DEG` was strapped again since: it is solved afresh and flagged in
+    ``carry_rejected`` (one at a time, the worst first, since one moved tracker tilts the heading
+    the others see). Trackers not carried are solved as without it, with the heading the carried
+    ones give.
 
     Returns a :class:`MountCalibration`. A tracker with fewer than 10 usable samples gets NaN
     entries and ``calibrated[k] = False``. Raises ``ValueError`` on malformed input (shapes, NaN
@@ -605,31 +693,40 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         if not (site_prior_m > 0 and math.isfinite(site_prior_m)):
             raise ValueError(f"site_prior_m must be positive and finite, got {site_prior_m}")
         m_prec = 1.0 / (site_prior_m**2 * obs_per_sample)
-    design = _Design(K, m0, m_prec, chain, valid.any(axis=1), obs_per_sample)
-    psi_knots = np.full(hk.n, _init_heading(Rs, Rt, use.astype(np.float64)))
-    rot_out = np.zeros_like(valid)
+    fixed = np.zeros(K, bool)
+    if carried is not None:
+        carried.check(K)
+        fixed = carried.carried.copy()
+        M_carried = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
+        M_carried[fixed] = Rotation.from_quat(carried.rotations[fixed]).as_matrix()
+    offered = fixed.copy()
+    rejected = np.zeros(K, bool)
+    while True:  # once, or again after a carried tracker is found strapped again
+        psi_knots, rot_out, M, moved = _rotation_rounds(Rs, Rt, use, np.zeros_like(valid), hk, hj, hu, rounds, fixed,
+                                                        M_carried if fixed.any() else None)  # fmt: skip
+        if moved is None:
+            break
+        fixed[moved] = False
+        rejected[moved] = True
+    m_prec = np.broadcast_to(np.asarray(m_prec, np.float64), (K,)).copy()
+    m0 = np.broadcast_to(m0, (K, 3)).copy()
+    if fixed.any():
+        m0[fixed] = carried.translations[fixed]
+        std = np.maximum(np.nan_to_num(carried.translation_std_m[fixed], nan=0.0) / math.sqrt(3.0), CARRIED_FLOOR_M)
+        m_prec[fixed] = 1.0 / (std**2 * obs_per_sample)
+    design = _Design(K, m0, m_prec, chain, valid.any(axis=1), obs_per_sample,
+                     eps0=carried.chain if carried is not None and fixed.any() else None)  # fmt: skip
     trans_out = np.zeros_like(valid)
-    M = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
     m = np.zeros((K, 3))
     eps = np.zeros((len(design.segments), 3))
     d_knots = np.zeros((dk.n, 3))
     cov_m = np.full((K, 3, 3), np.nan)
     for outer in range(2):
-        inl = use & ~rot_out & ~trans_out
-        for _ in range(max(1, int(rounds))):
-            psi = _at_knots(psi_knots, hj, hu)
-            G = _yaw_matrices(psi)[:, None] @ Rs  # Y R_seg (T, K, 3, 3)
-            A = np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True)
-            M, _ = _project_so3(A)
-            Q = Rt @ np.swapaxes(M, -1, -2)[None] @ np.swapaxes(Rs, -1, -2)
-            psi_knots = _fit_heading(hk, hj, hu, Q, inl.astype(np.float64), psi)
-            psi = _at_knots(psi_knots, hj, hu)
-            G = _yaw_matrices(psi)[:, None] @ Rs
-            ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
-            rot_out = _flag(ang, use & ~trans_out, _ROT_FLOOR_RAD)
-            inl = use & ~rot_out & ~trans_out
-        A = np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True)
-        M, _ = _project_so3(A)
+        if outer:
+            psi_knots, rot_out, M, _ = _rotation_rounds(Rs, Rt, use, trans_out, hk, hj, hu, rounds, fixed,
+                                                        M_carried if fixed.any() else None, psi_knots, rot_out)  # fmt: skip
+        psi = _at_knots(psi_knots, hj, hu)
+        G = _yaw_matrices(psi)[:, None] @ Rs
 
         # translations: y = p_tr - Y p_seg = d(t) + G m_k
         Yt = _yaw_matrices(psi)
@@ -659,7 +756,9 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
     inl = use & ~rot_out & ~trans_out
     heading_std = 0.0
     offset = 0.0
-    if sites is not None:
+    if fixed.any():
+        heading_std = math.sqrt(float(np.nanmean(carried.rotation_std_deg[fixed] ** 2)) / int(fixed.sum()))
+    elif sites is not None:
         problem = _HeadingProblem(Rs, Rt, p_seg, p_trk, valid, inl, huber / sigma[None] ** 2, dk, dj, du,
                                   drift_rate_m_per_sqrt_s, design, obs_per_sample)  # fmt: skip
         offset, heading_std = problem.search(psi)
@@ -680,12 +779,15 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         rot_rms[k] = math.degrees(math.sqrt(float(np.mean(ang[sel, k] ** 2))))
         rot_std[k] = math.hypot(math.degrees(math.sqrt(max(float(np.trace(_mean_cov(rv[sel, k], t[sel]))), 0.0))),
                                 heading_std)  # fmt: skip
+        if fixed[k]:
+            rot_std[k] = float(carried.rotation_std_deg[k])
         tr_rms[k] = math.sqrt(float(np.mean(en[sel, k] ** 2)))
         ek = e[sel, k]
         white = np.atleast_2d(np.cov(ek, rowvar=False)) / ek.shape[0]
         infl = float(np.trace(_mean_cov(ek, t[sel])) / np.trace(white)) if np.trace(white) > 0 else 1.0
         tr_std[k] = math.sqrt(max(float(np.trace(cov_m[k])), 0.0) * max(infl, 1.0))
     rotations = Rotation.from_matrix(M).as_quat()
+    rotations[fixed] = carried.rotations[fixed] if fixed.any() else rotations[fixed]  # as carried, to the bit
     translations = m.copy()
     rotations[~calibrated] = np.nan
     translations[~calibrated] = np.nan
@@ -698,7 +800,53 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         chain_segments=np.asarray(design.segments, np.int64), chain_misalignment_rad=eps.copy(),
         chain_std_deg=design.chain_std_deg(cov),
         common_offset_std_m=np.asarray(design.common_std_m(G, _yaw_matrices(psi), cov, inl) / math.sqrt(obs_per_sample)),
+        carried=fixed & calibrated, carry_rejected=rejected & offered,
     )  # fmt: skip
+
+
+def _rotation_rounds(Rs, Rt, use, trans_out, hk: _Knots, hj, hu, rounds: int, fixed: np.ndarray, M_fixed,
+                     psi_knots: np.ndarray | None = None, rot_out: np.ndarray | None = None):  # fmt: skip
+    """The rotation part of :func:`calibrate_mounts`: ``rounds`` times the mounts ``M (K, 3, 3)``
+    by the closed form (the ``fixed (K,)`` ones kept at ``M_fixed``) and the heading knots fitted to
+    the trackers' orientations (to the fixed ones' alone when there are any), rejecting rotation
+    outliers among ``use & ~trans_out``. Starts from ``psi_knots`` (default: the best constant)
+    and the rotation outliers ``rot_out`` (default: none).
+    Returns ``(psi_knots, rot_out (T, K), M, moved)``: ``moved`` the fixed tracker whose median
+    residual angle is the largest above :data:`MOVED_DEG`, or None."""
+    K = use.shape[1]
+    anchor = fixed if fixed.any() else np.ones(K, bool)
+    if psi_knots is None:
+        if fixed.any():
+            Q = Rt @ np.swapaxes(M_fixed, -1, -2)[None] @ np.swapaxes(Rs, -1, -2)
+            w = (use & fixed[None]).astype(np.float64)
+            yaw0 = math.atan2(float(np.sum(w * (Q[..., 0, 2] - Q[..., 2, 0]))), float(np.sum(w * (Q[..., 0, 0] + Q[..., 2, 2]))))
+        else:
+            yaw0 = _init_heading(Rs, Rt, use.astype(np.float64))
+        psi_knots = np.full(hk.n, yaw0)
+    rot_out = np.zeros_like(use) if rot_out is None else rot_out
+    inl = use & ~rot_out & ~trans_out
+    for _ in range(max(1, int(rounds))):
+        psi = _at_knots(psi_knots, hj, hu)
+        G = _yaw_matrices(psi)[:, None] @ Rs  # Y R_seg (T, K, 3, 3)
+        M, _ = _project_so3(np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True))
+        if fixed.any():
+            M[fixed] = M_fixed[fixed]
+        Q = Rt @ np.swapaxes(M, -1, -2)[None] @ np.swapaxes(Rs, -1, -2)
+        psi_knots = _fit_heading(hk, hj, hu, Q, (inl & anchor[None]).astype(np.float64), psi)
+        psi = _at_knots(psi_knots, hj, hu)
+        G = _yaw_matrices(psi)[:, None] @ Rs
+        ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
+        rot_out = _flag(ang, use & ~trans_out, _ROT_FLOOR_RAD)
+        inl = use & ~rot_out & ~trans_out
+    M, _ = _project_so3(np.einsum("tk,tkji,tkjl->kil", inl.astype(np.float64), G, Rt, optimize=True))
+    moved = None
+    if fixed.any():
+        M[fixed] = M_fixed[fixed]
+        ang, _ = _rot_residual(np.swapaxes(G @ M[None], -1, -2) @ Rt)
+        med = np.array([float(np.median(ang[use[:, k], k])) if fixed[k] and use[:, k].any() else 0.0 for k in range(K)])
+        if med.max() > math.radians(MOVED_DEG):
+            moved = int(np.argmax(med))
+    return psi_knots, rot_out, M, moved
 
 
 class _HeadingProblem:

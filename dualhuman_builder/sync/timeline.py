@@ -15,7 +15,11 @@ Trackers
     their lags are combined into one correction. Then each tracker's mounting rotation and offset on
     its segment, the suit's heading against the tracker world, the suit's position drift and its
     segments' misalignments along each tracker's chain are solved by least squares
-    (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`).
+    (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`). With ``mounts_from`` (the sync of a
+    calibration take of the same session), each tracker found there by serial, on the same
+    segment of the same actor, keeps that take's mount
+    (:class:`~dualhuman_builder.sync.mount.CarriedMounts`): a take whose actors hardly move then
+    still gets its heading and its trackers' shared offset right.
 
 Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
 ``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
@@ -180,12 +184,51 @@ def describe_mount(m, k: int) -> dict:
             "rejected_samples": int(m.outliers[:, k].sum())}  # fmt: skip
 
 
+def carry_mounts(calibration: SyncResult, actor: str, serials, segments, source: str = ""):
+    """The :class:`~dualhuman_builder.sync.mount.CarriedMounts` of ``actor``'s trackers
+    (``serials``, ``segments`` in this take's order) from ``calibration``, a calibration take's
+    :class:`SyncResult`: a tracker is carried when the same actor wore the same serial on the same
+    segment there and it was calibrated; the suit's chain misalignments come with them."""
+    from dualhuman_builder.sync.mount import CarriedMounts
+
+    try:
+        cal = calibration.actor(actor)
+    except KeyError:
+        cal = None
+    if cal is None or cal.mounts is None:
+        K = len(serials)
+        return CarriedMounts(np.zeros(K, bool), np.full((K, 4), np.nan), np.full((K, 3), np.nan), np.full(K, np.nan),
+                             np.full(K, np.nan), {}, source)  # fmt: skip
+    return CarriedMounts.from_calibration(cal.mounts, list(zip(cal.serials, cal.segments)), list(zip(serials, segments)), source)
+
+
+def _report_carried(report: dict, actor: str, serials, carried, mounts, source: str, say) -> None:
+    """``report["mounts_from"]``: which of ``actor``'s trackers kept the calibration take's mount,
+    and warnings for those that could not."""
+    from dualhuman_builder.sync.mount import MOVED_DEG
+
+    entry = report.setdefault("mounts_from", {"take": source})
+    kept = [s for s, c in zip(serials, mounts.carried) if c]
+    moved = [s for s, r in zip(serials, mounts.carry_rejected) if r]
+    missing = [s for s, c in zip(serials, carried.carried) if not c]
+    entry[actor] = {"carried": kept, "strapped_again": moved, "not_in_calibration": missing}
+    for s in moved:
+        report.setdefault("warnings", []).append(
+            f"{actor}: tracker {s} turned against its segment since {source} (rotation residuals over "
+            f"{MOVED_DEG:g} deg with its mount from there): strapped again? Its mount was solved on this take alone")
+    if missing:
+        report.setdefault("warnings", []).append(
+            f"{actor}: trackers {missing} have no mount in {source} (another serial, segment or actor); solved on this take alone")
+    say(f"{actor}: {len(kept)} of {len(serials)} tracker mounts carried over from {source}")
+
+
 def _ms(x: float) -> float:
     return round(float(x) * 1e3, 4)
 
 
 def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = None, use_trackers: bool = True,
-                progress: Callable[[str], None] | None = None, suit_chain: bool = True) -> SyncResult:  # fmt: skip
+                progress: Callable[[str], None] | None = None, suit_chain: bool = True,
+                mounts_from: SyncResult | None = None, mounts_from_take: str = "") -> SyncResult:  # fmt: skip
     """Put a take's suits and trackers on one timeline at ``fps`` (see the module docstring).
 
     ``columns``: :func:`read_columns` of the take. ``actors``: which actors, in order (default: the
@@ -193,7 +236,10 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     fusion buys). ``suit_chain`` (default True): solve each suit segment's constant misalignment on
     the chains from the pelvis to the trackers with the mounts
     (:class:`~dualhuman_builder.sync.mount.SuitChain`, prior :data:`CHAIN_PRIOR_DEG`); False leaves
-    the suit's limb errors to the mounts and the drift, as before."""
+    the suit's limb errors to the mounts and the drift, as before. ``mounts_from``: the
+    :class:`SyncResult` of a calibration take of the same session (named ``mounts_from_take`` in
+    the report) whose mounts carry over (:func:`carry_mounts`); the report's ``mounts_from`` says
+    which trackers kept theirs, and warns of those found strapped again or missing there."""
     from dualhuman_builder.sync.clock import fit_clock
     from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed
     from dualhuman_builder.sync.mount import SuitChain, calibrate_mounts
@@ -314,11 +360,13 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
             usable = a.trk_valid & a.suit_valid[:, None]
             chain = SuitChain.of(np.nan_to_num(a.suit_rot), np.nan_to_num(a.suit_pos), seg_idx, _PARENT_INDEX,
                                  prior_deg=CHAIN_PRIOR_DEG) if suit_chain else None  # fmt: skip
+            carried = carry_mounts(mounts_from, name, a.serials, a.segments, mounts_from_take) if mounts_from else None
             try:
                 a.mounts = calibrate_mounts(times, np.nan_to_num(a.suit_rot[:, seg_idx]), np.nan_to_num(a.suit_pos[:, seg_idx]),
                                             np.nan_to_num(a.trk_rot), np.nan_to_num(a.trk_pos), usable,
                                             drift_knot_spacing_s=MOUNT_DRIFT_KNOTS_S,
-                                            sites=np.array([tracker_site(g) for g in a.segments]), chain=chain)  # fmt: skip
+                                            sites=np.array([tracker_site(g) for g in a.segments]), chain=chain,
+                                            carried=carried)  # fmt: skip
             except ValueError as e:
                 report.setdefault("warnings", []).append(f"{name}: tracker mounts not calibrated ({e}); fitting without trackers")
                 a.serials, a.segments, a.trk_rot, a.trk_pos, a.trk_valid = (), (), None, None, None
@@ -335,7 +383,9 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 # segment leaves it to the sites' prior, ~14 mm for six trackers at 2 cm)
                 c_std = float(a.mounts.common_offset_std_m)
                 report.setdefault("common_offset", {})[name] = {"std_mm": round(c_std * 1000, 2) if np.isfinite(c_std) else None}
-                if not h_std <= HEADING_WARN_DEG:
+                if carried is not None:
+                    _report_carried(report, name, a.serials, carried, a.mounts, mounts_from_take or "the calibration take", say)
+                if not h_std <= HEADING_WARN_DEG and not a.mounts.carried.any():
                     report.setdefault("warnings", []).append(
                         f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
                         "turns, so it rests on where the trackers are strapped; start takes with a calibration turn")
