@@ -21,17 +21,24 @@ What it does now (each step goes through the workspace, so a second run is a no-
    sources into ``take.mcap`` (:mod:`dualhuman_builder.capture`), checked, and replayed to verify
    that re-decoding gives the recorded samples bit for bit (``capture.json``).
 
-6. runs ``sync``, ``fuse`` and ``fit`` on that take (:mod:`dualhuman_builder.fit.stages`): clocks
-   and tracker mounts (``sync.json``), fused skeletons, both actors' anny bodies fitted jointly
-   with the collision term (``bodies.npz``, ``shapes.json``) and ``report.html`` / ``report.png``.
+6. records the session's calibration take ``CALIB`` the same way (its ``scene`` and ``capture``
+   stages, sequence ``calibration``: the two actors, apart, bow, bend, twist, squat, raise their
+   arms and turn on the spot, wearing the same simulated devices), and syncs it: its tracker
+   mounts carry over to ``DEMO`` (``dualhuman sync --mounts-from``).
 
-7. runs ``contacts`` (per-vertex contacts between the fitted bodies, region events:
+7. runs ``sync`` (mounts from ``CALIB``), ``fuse`` and ``fit`` on the handshake
+   (:mod:`dualhuman_builder.fit.stages`): clocks and tracker mounts (``sync.json``), fused
+   skeletons, both actors' anny bodies fitted jointly with the collision term (``bodies.npz``,
+   ``shapes.json``) and ``report.html`` / ``report.png``.
+
+8. runs ``contacts`` (per-vertex contacts between the fitted bodies, region events:
    ``contacts.npz``, ``contacts.json``), ``render`` (Mitsuba: four views around the pair, every 10th
    frame at 192 px: RGB, depth, masks, keypoints, cameras, under ``artifacts/DEMO/_take/render/``)
    and ``sheet`` (``contact_sheet.png``: views x frames with masks and keypoints overlaid and the
    contacts painted on the meshes);
 
-8. exports the dataset to ``WS/export/`` and verifies it (``dualhuman export verify WS/export``).
+9. exports the dataset to ``WS/export/`` and verifies it (``dualhuman export verify WS/export``);
+   the calibration take has no fit and is left out.
 
 The demo always runs the whole pipeline that exists.
 """
@@ -50,6 +57,10 @@ DEMO_TAKE = "DEMO"
 DEMO_SEQUENCE = "handshake"
 DEMO_SCENE = {"type": "handshake", "seed": 3, "fps": 30.0}
 DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
+#: The session's calibration take: the same actors and simulated devices (seed), another motion.
+CALIB_TAKE = "CALIB"
+CALIB_SEQUENCE = "calibration"
+CALIB_SCENE = {"type": "calibration", "seed": DEMO_SCENE["seed"], "fps": DEMO_SCENE["fps"]}
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
 #: The demo's simulated devices play this many times faster than real time while recorded. Real
 #: time: 2x is the most a 2-core machine records losslessly (benchmarks/bench_capture.py), and near
@@ -116,32 +127,8 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
                 ws.add_actor(name, height, gender, shape=shape, shape_source="stature")
                 log(f"actor {name}: {height:.2f} m {gender}, anny shape solved from stature")
             shapes.append(ws.actor(name).shape)
-        if DEMO_TAKE not in ws.takes():
-            ws.add_take(DEMO_TAKE, rig="sim", actors=[a[0] for a in DEMO_ACTORS], meta={"simulated": True})
-        if DEMO_SEQUENCE not in [s.name for s in ws.sequences(DEMO_TAKE)]:
-            from dualhuman_builder.sim.scenes import NATURAL_DURATION
-
-            frames = int(round(NATURAL_DURATION[DEMO_SCENE["type"]] * DEMO_SCENE["fps"]))
-            ws.add_sequence(DEMO_TAKE, DEMO_SEQUENCE, 0, frames, labels=(DEMO_SCENE["type"],))
-
-        def scene(out):
-            from dualhuman_builder.sim.scenes import SceneParams, make_scene
-
-            log(f"generating a {DEMO_SCENE['type']} (seed {DEMO_SCENE['seed']})...")
-            sc = make_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in DEMO_ACTORS), **DEMO_SCENE),
-                            model=model, log=log)  # fmt: skip
-            sc.save(out.path("scene.npz"))
-            sc.sequence.save(out.path("sequence.npz"))
-            log(f"scene quality: penetration {1000 * sc.stats['max_penetration_m']:.1f} mm, contact on "
-                f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
-            return {**_write_scene_views(model, sc, out), "quality": sc.stats}
-
-        from dualhuman_builder.sim.scenes import GENERATOR_VERSION
-
-        params = {"actors": DEMO_ACTORS, "shapes": shapes, **DEMO_SCENE}
-        res = ws.run_stage("scene", scene, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params=params,
-                           version=str(GENERATOR_VERSION))  # fmt: skip
-        _note(result, log, "scene", res)
+        for take, seq, scene_params in ((DEMO_TAKE, DEMO_SEQUENCE, DEMO_SCENE), (CALIB_TAKE, CALIB_SEQUENCE, CALIB_SCENE)):
+            _simulated_take(ws, result, model, shapes, take, seq, scene_params, log)
         if not ws.annotations(DEMO_TAKE):  # scene-generated sequences come labelled with their type and text
             from dualhuman_builder.export.labels import Annotation, check_annotation, load_vocabulary
             from dualhuman_builder.tracks import InteractionSequence
@@ -150,39 +137,14 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
             ann = Annotation(DEMO_TAKE, DEMO_SEQUENCE, SCENE_ANNOTATOR, tuple(gt.labels), tuple(gt.text))
             ws.annotate([check_annotation(ann, load_vocabulary(ws.root), ws.take(DEMO_TAKE).actors)])
 
-        def devices(out):
-            from dualhuman_builder.sim.scenes import Scene
-            from dualhuman_builder.sim.studio import simulate_studio
-
-            sc = Scene.load(ws.artifacts("scene", DEMO_TAKE, DEMO_SEQUENCE)["scene.npz"])
-            studio = simulate_studio(sc.sequence, seed=DEMO_SCENE["seed"], progress=log)
-            summary = studio_summary(studio)
-            with open(out.path("devices.json"), "w") as f:
-                json.dump(summary, f, indent=2)
-            return {"samples": sum(summary["samples"].values())}
-
-        res = ws.run_stage("devices", devices, take=DEMO_TAKE, sequence=DEMO_SEQUENCE, params={"seed": DEMO_SCENE["seed"]},
-                           depends_on=[("scene", DEMO_SEQUENCE)])  # fmt: skip
-        _note(result, log, "devices", res)
-
-        def capture(out):
-            scene_path = ws.artifacts("scene", DEMO_TAKE, DEMO_SEQUENCE)["scene.npz"]
-            summary = record_demo_take(scene_path, out.path("take.mcap"), log=log)
-            with open(out.path("capture.json"), "w") as f:
-                json.dump(summary, f, indent=2)
-            return {k: summary[k] for k in ("samples", "lost", "replay_identical")}
-
-        res = ws.run_stage("capture", capture, take=DEMO_TAKE, sequence=DEMO_SEQUENCE,
-                           params={"seed": DEMO_SCENE["seed"], "speed": DEMO_CAPTURE_SPEED},
-                           depends_on=[("scene", DEMO_SEQUENCE)])  # fmt: skip
-        _note(result, log, "capture", res)
-
         # sync -> fuse -> fit on the recorded take (take-level stages reading the capture artifact)
         from dualhuman_builder.fit.stages import run_fit
 
         take_file = ws.artifacts("capture", DEMO_TAKE, DEMO_SEQUENCE)["take.mcap"]
         res = run_fit(ws, DEMO_TAKE, log=log, fps=DEMO_SCENE["fps"], take_file=take_file,
-                      depends_on=[("capture", DEMO_SEQUENCE)])  # fmt: skip
+                      depends_on=[("capture", DEMO_SEQUENCE)], mounts_from=CALIB_TAKE,
+                      mounts_take_file=ws.artifacts("capture", CALIB_TAKE, CALIB_SEQUENCE)["take.mcap"],
+                      mounts_depends_on=[("capture", CALIB_SEQUENCE)])  # fmt: skip
         for stage in ("sync", "fuse"):
             result.outputs.update(ws.artifacts(stage, DEMO_TAKE))
         _note(result, log, "fit", res)
@@ -216,10 +178,70 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
     return result
 
 
-def _note(result: DemoResult, log, stage: str, res) -> None:
+def _simulated_take(ws, result: DemoResult, model, shapes, take: str, sequence: str, params: dict, log) -> None:
+    """Register ``take`` with its one ``sequence`` and run its ``scene`` (a generated scene of type
+    ``params["type"]`` with the demo actors' shapes; the interaction's also gets its previews),
+    ``devices`` and ``capture`` stages (the simulated devices of seed ``params["seed"]``). Another
+    take than ``DEMO`` is noted as ``"<stage> (<take>)"``, its outputs as ``"<take>/<name>"``."""
+    from dualhuman_builder.sim.scenes import GENERATOR_VERSION, NATURAL_DURATION
+
+    calibration = params["type"] == "calibration"
+    tag, prefix = ("", "") if take == DEMO_TAKE else (f" ({take})", f"{take}/")
+    if take not in ws.takes():
+        ws.add_take(take, rig="sim", actors=[a[0] for a in DEMO_ACTORS], meta={"simulated": True, "calibration": calibration})
+    if sequence not in [s.name for s in ws.sequences(take)]:
+        frames = int(round(NATURAL_DURATION[params["type"]] * params["fps"]))
+        ws.add_sequence(take, sequence, 0, frames, labels=(params["type"],))
+
+    def scene(out):
+        from dualhuman_builder.sim.scenes import SceneParams, make_scene
+
+        log(f"generating a {params['type']} (seed {params['seed']})...")
+        sc = make_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in DEMO_ACTORS), **params),
+                        model=model, log=log)  # fmt: skip
+        sc.save(out.path("scene.npz"))
+        sc.sequence.save(out.path("sequence.npz"))
+        if calibration:
+            return {"quality": sc.stats}
+        log(f"scene quality: penetration {1000 * sc.stats['max_penetration_m']:.1f} mm, contact on "
+            f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
+        return {**_write_scene_views(model, sc, out), "quality": sc.stats}
+
+    res = ws.run_stage("scene", scene, take=take, sequence=sequence, params={"actors": DEMO_ACTORS, "shapes": shapes, **params},
+                       version=str(GENERATOR_VERSION))  # fmt: skip
+    _note(result, log, "scene" + tag, res, prefix)
+
+    def devices(out):
+        from dualhuman_builder.sim.scenes import Scene
+        from dualhuman_builder.sim.studio import simulate_studio
+
+        sc = Scene.load(ws.artifacts("scene", take, sequence)["scene.npz"])
+        summary = studio_summary(simulate_studio(sc.sequence, seed=params["seed"], progress=log))
+        with open(out.path("devices.json"), "w") as f:
+            json.dump(summary, f, indent=2)
+        return {"samples": sum(summary["samples"].values())}
+
+    res = ws.run_stage("devices", devices, take=take, sequence=sequence, params={"seed": params["seed"]},
+                       depends_on=[("scene", sequence)])  # fmt: skip
+    _note(result, log, "devices" + tag, res, prefix)
+
+    def capture(out):
+        summary = record_demo_take(ws.artifacts("scene", take, sequence)["scene.npz"], out.path("take.mcap"), log=log,
+                                   take=take, devices_seed=params["seed"])  # fmt: skip
+        with open(out.path("capture.json"), "w") as f:
+            json.dump(summary, f, indent=2)
+        return {k: summary[k] for k in ("samples", "lost", "replay_identical")}
+
+    res = ws.run_stage("capture", capture, take=take, sequence=sequence, params={"seed": params["seed"], "speed": DEMO_CAPTURE_SPEED},
+                       depends_on=[("scene", sequence)])  # fmt: skip
+    _note(result, log, "capture" + tag, res, prefix)
+
+
+def _note(result: DemoResult, log, stage: str, res, prefix: str = "") -> None:
+    """Count a stage as run or up to date, and keep its artifacts (names prefixed by ``prefix``)."""
     (result.up_to_date if res.skipped else result.ran).append(stage)
     log(f"stage {stage}: {'up to date' if res.skipped else 'done'}")
-    result.outputs.update(res.artifacts)
+    result.outputs.update({prefix + k: v for k, v in res.artifacts.items()})
 
 
 def studio_summary(studio) -> dict:
@@ -241,7 +263,8 @@ def studio_summary(studio) -> dict:
             "imus": {k: {"segment": v.segment, "rate_hz": v.rate_hz} for k, v in studio.imus.items()}}  # fmt: skip
 
 
-def record_demo_take(scene_path: Path, take_path: Path, log: Callable[[str], None] = print) -> dict:
+def record_demo_take(scene_path: Path, take_path: Path, log: Callable[[str], None] = print, take: str = DEMO_TAKE,
+                     devices_seed: int = DEMO_SCENE["seed"]) -> dict:  # fmt: skip
     """Record the scene's simulated studio through real loopback transports into ``take_path``
     (:func:`dualhuman_builder.capture.session.capture_take`), check the file, and check that
     re-decoding its raw packets gives the recorded samples bit for bit. Returns a summary."""
@@ -249,9 +272,9 @@ def record_demo_take(scene_path: Path, take_path: Path, log: Callable[[str], Non
     from dualhuman_builder.capture.replay import verify_replay
     from dualhuman_builder.capture.session import capture_take, plan_capture
 
-    url = f"sim://{Path(scene_path).resolve()}?devices={DEMO_SCENE['seed']}"
+    url = f"sim://{Path(scene_path).resolve()}?devices={devices_seed}"
     log(f"recording the simulated studio on loopback ({DEMO_CAPTURE_SPEED:g}x real time)...")
-    res = capture_take(plan_capture(sources=[url]), take_path, take=DEMO_TAKE, sim_speed=DEMO_CAPTURE_SPEED, progress=log)
+    res = capture_take(plan_capture(sources=[url]), take_path, take=take, sim_speed=DEMO_CAPTURE_SPEED, progress=log)
     if res.error:
         from dualhuman_builder.errors import DualhumanError
 

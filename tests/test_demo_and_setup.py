@@ -27,7 +27,8 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     ws_path = tmp_path / "demo"
     logs = []
     first = run_demo(ws_path, log=logs.append)
-    stages = ["scene", "devices", "capture", "fit", "contacts", "render", "sheet", "export"]
+    stages = ["scene", "devices", "capture", "scene (CALIB)", "devices (CALIB)", "capture (CALIB)", "fit", "contacts",
+              "render", "sheet", "export"]  # fmt: skip
     assert first.ran == stages and first.up_to_date == []
     out = first.outputs
     assert set(out) >= {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
@@ -69,6 +70,10 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     fitted = InteractionSequence.load(out["bodies.npz"])
     sync = json.loads(out["sync.json"].read_text())
     assert abs(sync["clocks"]["source:trackers"]["offset_s"] - 0.25) < 0.005
+    # the session's calibration take (same devices, actors turning every segment) lent its mounts
+    assert Scene.load(out["CALIB/scene.npz"]).params.type == "calibration" and "CALIB/take.mcap" in out
+    assert sync["mounts_from"]["take"] == "CALIB"
+    assert all(len(sync["mounts_from"][a]["carried"]) == 6 for a in ("sim-a", "sim-b")), sync["mounts_from"]
     err = np.mean([np.linalg.norm(f.joints() - g.joints()[: f.num_frames], axis=-1).mean() for f, g in zip(fitted.actors, seq.actors)])
     assert err < 0.03, f"mean joint error {err * 1000:.1f} mm"
     assert "<svg" in out["report.html"].read_text()

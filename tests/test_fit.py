@@ -191,7 +191,7 @@ def test_full_path_on_a_simulated_take(recorded, model):
 
 def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
     """The sync report carries each actor's heading and its 1-sigma, and warns (naming the actor
-    and the calibration turn) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``."""
+    and the calibration take to carry mounts from) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``."""
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.sync import timeline
 
@@ -199,7 +199,7 @@ def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
     columns = read_columns(take)
 
     def heading_warnings(report):
-        return [w for w in report.get("warnings", []) if "calibration turn" in w]
+        return [w for w in report.get("warnings", []) if "--mounts-from" in w]
 
     report = synchronise(columns, fps=15.0).report
     stds = {name: h["std_deg"] for name, h in report["heading"].items()}

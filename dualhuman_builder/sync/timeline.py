@@ -388,7 +388,8 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 if not h_std <= HEADING_WARN_DEG and not a.mounts.carried.any():
                     report.setdefault("warnings", []).append(
                         f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
-                        "turns, so it rests on where the trackers are strapped; start takes with a calibration turn")
+                        "turns, so it rests on where the trackers are strapped; record the session's calibration take (a bow, a "
+                        "twist, a turn on the spot) and sync with --mounts-from it")
                 say(f"{name}: {K} trackers calibrated on their segments")
         out.append(a)
     return SyncResult(float(fps), times, out, report)
