@@ -19,6 +19,14 @@ located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plu
 Writes ``benchmarks/results/fit_accuracy.json``.
 
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --compare-exact
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --calibration
+
+``--calibration`` follows the session protocol: per device seed it also records (or, with
+``--keep``, reuses ``DIR/calibration-<seed>/``) a ``calibration`` take of the same devices, syncs
+it, and carries its tracker mounts into every take's sync
+(:func:`~dualhuman_builder.sync.timeline.synchronise` ``mounts_from``; ``dualhuman sync
+--mounts-from`` in a workspace). The mount columns are then the calibration take's mounts. Writes
+``fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
 """
 
 from __future__ import annotations
@@ -41,11 +49,9 @@ COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetrat
            "mount_offset_error_mm", "foot_slide_mm", "fit_pairs_per_s")  # fmt: skip
 
 
-def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False) -> dict:
-    from dualhuman_builder.fit.evaluate import evaluate_take_fit, record_simulated_take
-    from dualhuman_builder.fit.fitter import FitConfig
-    from dualhuman_builder.fit.pipeline import process_take
-
+def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model):
+    """``(take, scene)``: the take kept in ``tmp/<type>-<seed>/``, or a new recording there."""
+    from dualhuman_builder.fit.evaluate import record_simulated_take
     from dualhuman_builder.sim.scenes import Scene
 
     folder = tmp / f"{scene_type}-{seed}"
@@ -54,10 +60,19 @@ def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
         scene = Scene.load(scene_file)
         if abs(scene.sequence.fps - fps) > 1e-9:
             raise SystemExit(f"{take} was recorded at {scene.sequence.fps:g} fps, not {fps:g}: use another --keep folder")
-    else:
-        take, scene = record_simulated_take(scene_type, seed, folder, fps=fps, speed=speed, model=model)
+        return take, scene
+    return record_simulated_take(scene_type, seed, folder, fps=fps, speed=speed, model=model)
+
+
+def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False,
+             mounts_from=None) -> dict:  # fmt: skip
+    from dualhuman_builder.fit.evaluate import evaluate_take_fit
+    from dualhuman_builder.fit.fitter import FitConfig
+    from dualhuman_builder.fit.pipeline import process_take
+
+    take, scene = recorded(scene_type, seed, fps, speed, tmp, model)
     t0 = time.perf_counter()
-    tf = process_take(take, fps=fps, model=model)
+    tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from)
     wall = time.perf_counter() - t0
     ev = evaluate_take_fit(tf, scene, seed=seed, model=model)
     extra = {}
@@ -92,12 +107,18 @@ def main() -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--fps", type=float, default=15.0, help="scene and fit frame rate")
     ap.add_argument("--speed", type=float, default=1.0, help="recording speed (multiple of real time)")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fit_accuracy.json")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="where to write the figures (default results/fit_accuracy.json, or fit_accuracy_calibrated.json)")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
+    ap.add_argument("--calibration", action="store_true",
+                    help="carry the tracker mounts of a calibration take per device seed into each take's sync")
     args = ap.parse_args()
+    if args.out is None:
+        name = "fit_accuracy_calibrated.json" if args.calibration else "fit_accuracy.json"
+        args.out = Path(__file__).parent / "results" / name
     cols = COLUMNS + ("fit_s", "exact_frames", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model
@@ -107,9 +128,17 @@ def main() -> None:
     print(f"{'take':<16}" + "".join(f"{c[:14]:>15}" for c in cols), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) if args.keep is None else args.keep
+        calibrations = {}
+        if args.calibration:
+            from dualhuman_builder.capture.log.reader import read_columns
+            from dualhuman_builder.sync.timeline import synchronise
+
+            for s in args.seeds:
+                take, _ = recorded("calibration", s, args.fps, args.speed, folder, model)
+                calibrations[s] = synchronise(read_columns(take), fps=args.fps)
         for t in args.types:
             for s in args.seeds:
-                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact)
+                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s))
                 rows.append(r)
                 print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in cols), flush=True)
     summary = {}
@@ -126,7 +155,8 @@ def main() -> None:
         worst = summary[c].get("worst", float("nan"))
         print(f"  {c:<28} {worst:8.3f}  <= {bound:g}  {'met' if worst <= bound else 'NOT met'}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"fps": args.fps, "speed": args.speed, "rows": rows, "summary": summary}, indent=1))
+    args.out.write_text(json.dumps({"fps": args.fps, "speed": args.speed, "calibration": args.calibration, "rows": rows,
+                                    "summary": summary}, indent=1))  # fmt: skip
     print(f"\nwritten {args.out}")
 
 

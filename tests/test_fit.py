@@ -249,7 +249,7 @@ def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, m
     assert report["mounts_from"]["take"] == "CAL"
     for name in ("sim-a", "sim-b"):
         assert len(report["mounts_from"][name]["carried"]) == 6 and report["mounts_from"][name]["strapped_again"] == []
-        assert report["common_offset"][name]["std_mm"] < 6.0, report["common_offset"]
+        assert report["common_offset"][name]["std_mm"] < 8.0, report["common_offset"]
         mine, theirs = sync.actor(name), cal.actor(name)
         for k, serial in enumerate(mine.serials):  # kept as solved on the calibration take
             j = theirs.serials.index(serial)
