@@ -787,7 +787,8 @@ def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_sp
         infl = float(np.trace(_mean_cov(ek, t[sel])) / np.trace(white)) if np.trace(white) > 0 else 1.0
         tr_std[k] = math.sqrt(max(float(np.trace(cov_m[k])), 0.0) * max(infl, 1.0))
     rotations = Rotation.from_matrix(M).as_quat()
-    rotations[fixed] = carried.rotations[fixed] if fixed.any() else rotations[fixed]  # as carried, to the bit
+    if fixed.any():
+        rotations[fixed] = carried.rotations[fixed]  # as carried, to the bit
     translations = m.copy()
     rotations[~calibrated] = np.nan
     translations[~calibrated] = np.nan
