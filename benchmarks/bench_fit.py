@@ -14,6 +14,8 @@ Prints: fit frame pairs/s without the collision term, with it (contacts held thr
 the default: ``FitConfig.collision_hold_contacts``), and with it located at every evaluation
 (``exact``, the baseline), median of --runs each, in this process; the held/exact ratio; anny
 forward+backward bodies/s at batch 2 x window, the fit/anny ratios, and the process's peak RSS.
+Under each fit, how unevenly it errs around the seams between its segments against elsewhere
+(:func:`seam_jitter`: the RMS second difference of the joint error against the ground truth).
 torch runs on ``--threads`` CPU threads (default ``FitConfig.torch_threads``, 1: fits that repeat
 exactly) for the fits and anny's rate alike. The take's segments are fitted on ``--workers``
 processes (this one included; ``auto``: the fit's default, one per CPU; a comma-separated list runs
@@ -38,7 +40,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def inputs(model, minutes: float, fps: float):
+def inputs(model, minutes: float, fps: float, truth: list | None = None):
+    """The benchmark take's ActorInputs (``T = minutes * 60 * fps`` frames); with a list ``truth``,
+    each actor's ground-truth joints ``(T, 22, 3)`` (m) are appended to it."""
     from dualhuman_builder.body.mapping import MVN_SEGMENTS
     from dualhuman_builder.fit.fitter import ActorInput
     from dualhuman_builder.sim.groundtruth import segment_kinematics
@@ -54,11 +58,37 @@ def inputs(model, minutes: float, fps: float):
         idx = np.concatenate([np.arange(n), np.arange(n)[::-1]])  # ping-pong keeps the motion continuous
         idx = np.resize(idx, T)
         pos = np.asarray(sk.positions)[idx]
+        if truth is not None:
+            truth.append(track.joints()[idx])
         out.append(ActorInput(track.actor, {k: float(v) for k, v in zip(model.shape_names, track.shape)},
                               np.asarray(sk.orientations)[idx], pos[:, 0], np.ones(T, bool), pos[:, tracked],
                               np.ones((T, 6), bool), np.array(tracked), np.zeros((6, 3)),
                               pos[:, [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]))  # fmt: skip
     return out
+
+
+def seam_jitter(res, truth: list, cfg) -> tuple[float, float, int]:
+    """``(at seams, elsewhere, seams)``: the RMS (mm/frame^2) of the second difference over frames of
+    the joint error (fit minus ground truth, 22 joints of both actors), in the frames around the
+    seams between segments (the 2 x overlap frames they share and overlap more on each side) and in
+    the others. The ground truth's own motion cancels; what is left is how unevenly the fit errs,
+    and a seam's cross-fade shows as a larger figure there."""
+    from dualhuman_builder.fit.fitter import layout
+
+    T, O = len(truth[0]), int(cfg.overlap)
+    segments = layout(T, cfg)
+    near = np.zeros(T, bool)
+    for seg in segments[1:]:
+        s = seg[0][1]  # the later segment starts 2 x overlap frames before the earlier one ends
+        near[max(s - O, 0) : min(s + 3 * O, T)] = True
+    err = np.concatenate([tr.joints() - gt for tr, gt in zip(res.sequence.actors, truth)], axis=1)
+    acc = np.linalg.norm(err[2:] - 2 * err[1:-1] + err[:-2], axis=-1) * 1000  # (T - 2, joints)
+    at = near[1:-1]
+
+    def rms(x):
+        return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+    return rms(acc[at]), rms(acc[~at]), len(segments) - 1
 
 
 def anny_rate(model, batch: int, runs: int) -> float:
@@ -92,7 +122,8 @@ def main():
     workers = [None if w.strip() == "auto" else int(w) for w in args.workers.split(",")]
 
     model = get_body_model(args.device)
-    inp = inputs(get_body_model(), args.minutes, args.fps)
+    truth: list = []
+    inp = inputs(get_body_model(), args.minutes, args.fps, truth)
     T = len(inp[0].seg_rot)
     threads = FitConfig().torch_threads if args.threads is None else args.threads
     if threads > 0:
@@ -120,6 +151,10 @@ def main():
             ratio = f", {medians[mode, w] / medians[mode, workers[0]]:.2f}x the first" if w != workers[0] else ""
             print(f"fit {names[mode]}, {n} process{'es' if n > 1 else ''}: {medians[mode, w]:.1f} frame pairs/s "
                   f"(median of {args.runs}{extra}){ratio}", flush=True)  # fmt: skip
+            at, elsewhere, seams = seam_jitter(res, truth, cfg)
+            if seams:
+                print(f"  joint error's frame-to-frame acceleration (RMS): {at:.2f} mm/frame^2 around the {seams} seams, "
+                      f"{elsewhere:.2f} elsewhere", flush=True)  # fmt: skip
     for w in workers:
         if ("held", w) in medians and ("exact", w) in medians:
             print(f"held / exact ({w or 'auto'} workers): {medians['held', w] / medians['exact', w]:.2f}x")
