@@ -23,7 +23,7 @@ Writes ``benchmarks/results/fit_accuracy.json``.
 
 ``--calibration`` follows the session protocol: per device seed it also records (or, with
 ``--keep``, reuses ``DIR/calibration-<seed>/``) a ``calibration`` take of the same devices, syncs
-it, and carries its tracker mounts into every take's sync
+it (printing its own mounts' errors against the simulated ones), and carries its tracker mounts into every take's sync
 (:func:`~dualhuman_builder.sync.timeline.synchronise` ``mounts_from``; ``dualhuman sync
 --mounts-from`` in a workspace). The mount columns are then the calibration take's mounts. Writes
 ``fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
@@ -38,6 +38,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -133,9 +135,16 @@ def main() -> None:
             from dualhuman_builder.capture.log.reader import read_columns
             from dualhuman_builder.sync.timeline import synchronise
 
+            from dualhuman_builder.fit.evaluate import mount_errors
+            from dualhuman_builder.sim.studio import simulate_studio
+
             for s in args.seeds:
-                take, _ = recorded("calibration", s, args.fps, args.speed, folder, model)
+                take, scene = recorded("calibration", s, args.fps, args.speed, folder, model)
                 calibrations[s] = synchronise(read_columns(take), fps=args.fps)
+                e = mount_errors(calibrations[s], simulate_studio(scene.sequence, seed=s))
+                t = e["translation_mm"]
+                print(f"calibration-{s}: mounts within {e['rotation_deg'].max():.2f} deg; offsets {t.mean():.1f} mm mean, "
+                      f"{np.sqrt(np.mean(t**2)):.1f} RMS, {t.max():.1f} worst", flush=True)  # fmt: skip
         for t in args.types:
             for s in args.seeds:
                 r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s))

@@ -196,9 +196,7 @@ def carry_mounts(calibration: SyncResult, actor: str, serials, segments, source:
     except KeyError:
         cal = None
     if cal is None or cal.mounts is None:
-        K = len(serials)
-        return CarriedMounts(np.zeros(K, bool), np.full((K, 4), np.nan), np.full((K, 3), np.nan), np.full(K, np.nan),
-                             np.full(K, np.nan), {}, source)  # fmt: skip
+        return CarriedMounts.empty(len(serials), source)
     return CarriedMounts.from_calibration(cal.mounts, list(zip(cal.serials, cal.segments)), list(zip(serials, segments)), source)
 
 
