@@ -500,6 +500,44 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
     assert s["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
 
 
+def test_the_collision_passes_move_only_the_frames_around_the_contacts(model):
+    """Actor b steps in to 10 cm from a for a few frames of a 40-frame take and back out: only those
+    frames collide. The collision passes move the frames within ``collision_span_s`` of them (0.3 s:
+    5 frames at 15 fps) and keep the rest of the window as the skeleton pass left it, bit for bit the
+    bodies of a fit without the collision term; with ``collision_span_s=0`` the whole window moves."""
+    from dualhuman_builder.fit.fitter import _context_join, _span
+
+    T, fps = 40, 15.0
+    inputs = _overlapping_pair(T, dx=0.0)
+    x = 0.6 - 0.5 * np.exp(-(((np.arange(T) - 20) / 2.0) ** 2))  # 60 cm apart, 10 cm at frame 20
+    inputs[1].pelvis = inputs[1].pelvis + np.stack([x, np.zeros(T), np.zeros(T)], 1)
+    cfg = FitConfig(window=T, iterations=4, collision_iterations=3, collision_rounds=1, hand_opening=False)
+    off = fit_actors(model, inputs, fps, dataclasses.replace(cfg, collision=False))
+    on = fit_actors(model, inputs, fps, cfg)
+    hit = np.flatnonzero(on.frames["penetration depth (mm)/without collision term"] > 0)
+    assert len(hit) and hit[0] > 8 and hit[-1] < T - 9  # a few frames in the middle collide
+    r0, r1 = _span(hit, T, cfg, fps)
+    assert (r0, r1) == (hit[0] - 5, hit[-1] + 6)
+    outside = np.r_[0:r0, r1:T]
+    for a, b in zip(on.sequence.actors, off.sequence.actors):
+        assert np.array_equal(np.asarray(a.pose)[outside], np.asarray(b.pose)[outside])
+        assert np.array_equal(np.asarray(a.transl)[outside], np.asarray(b.transl)[outside])
+        assert np.abs(np.asarray(a.transl)[hit] - np.asarray(b.transl)[hit]).max() > 1e-4  # pushed apart there
+    assert on.summary["max_penetration_after_mm"] < on.summary["max_penetration_before_mm"]
+    whole = fit_actors(model, inputs, fps, dataclasses.replace(cfg, collision_span_s=0.0))
+    moved = [np.abs(np.asarray(a.transl)[outside] - np.asarray(b.transl)[outside]).max()
+             for a, b in zip(whole.sequence.actors, off.sequence.actors)]  # fmt: skip
+    assert max(moved) > 0
+    # the span's rows at the window's edges, and the contexts it reads around it
+    assert _span(np.array([1, 2]), 48, cfg, fps) == (0, 8) and _span(np.array([46]), 48, cfg, fps) == (41, 48)
+    assert _span(np.array([], np.int64), 48, cfg, fps) == (0, 48)
+    ctx = tuple(torch.full((n, 3), float(v)) for n, v in ((1, 1), (1, 1), (1, 1)))
+    rows = tuple(torch.arange(3.0)[:, None].repeat(1, 3) + 10 for _ in range(3))
+    assert _context_join(ctx, rows, last=True)[0][:, 0].tolist() == [11.0, 12.0]
+    assert _context_join(rows, ctx, last=False)[0][:, 0].tolist() == [10.0, 11.0]
+    assert _context_join(None, ctx, last=True)[0].shape == (1, 3) and _context_join(None, None, last=False) is None
+
+
 def test_stuck_frames_restart_from_their_neighbours():
     """A run of stuck frames inside the window is set to the straight line between the frames around
     it (every parameter tensor), one at the window's edge to its one neighbour; frames outside the

@@ -122,7 +122,10 @@ class FitConfig:
     collision: bool = True
     collision_iterations: int = 12
     #: while a window still has a frame deeper than ``collision_tolerance_m`` after a collision pass, it
-    #: gets another with the weight x4, up to this many passes in all
+    #: gets another, up to this many full rounds. Each pass is weighted x4 over the one before it, the
+    #: hands' pass included: ``collision_weight`` for the hands, x4 for round 1, x16 for round 2 ... (until
+    #: 2026-11-24 round 1 repeated the hands' weight, and mostly did nothing where the hands' pass had
+    #: not: the accuracy benchmark's twelve fits 84 -> 63 s with the span below, figures in the README)
     collision_rounds: int = 6
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
@@ -131,6 +134,11 @@ class FitConfig:
     #: up to twice per window (``_MAX_RESTARTS``), frames that a full round left deeper than the
     #: tolerance and barely moved (less than 20 %) start the next round from their neighbours' answer
     collision_restart: bool = True
+    #: a window's collision passes move the frames within this many seconds of a frame the skeleton pass
+    #: left in contact, and those between; the rest of the window keeps its skeleton pass (0: the whole
+    #: window moves). The smoothness terms couple each frame to its two neighbours on either side, so a
+    #: push fades out over a few frames
+    collision_span_s: float = 0.3
     #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
     #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
     #: contacts' positions only), except in frames where a held round stalled; a window the rounds do
@@ -617,43 +625,57 @@ class _Fitter:
                 params += [deltas[k][loc].clone().requires_grad_(True), dtransl[k][loc].clone().requires_grad_(True),
                            openings[k][loc].clone().requires_grad_(cfg.hand_opening)]
             # the skeleton pass moves the bones only (no term there reads the fingers); the collision passes
-            # move the hands' openings too, when allowed
+            # move the hands' openings too, when allowed (cbones, chands below)
             bones = [p for k in range(len(acts)) for p in params[P * k : P * k + 2]]
-            hands = [params[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
 
-            def pose_all(idx):
-                """Both actors' posed bodies, with vertices, at window rows ``idx`` (a slice or index tensor)."""
-                return [a.pose(params[P * k][idx], params[P * k + 1][idx], _rows(sl, idx), True, params[P * k + 2][idx])[1]
+            def pose_all(ps, psl, idx):
+                """Both actors' posed bodies, with vertices, at rows ``idx`` (a slice or index tensor) of the
+                corrections ``ps`` (``P`` tensors per actor) of timeline frames ``psl``."""
+                return [a.pose(ps[P * k][idx], ps[P * k + 1][idx], _rows(psl, idx), True, ps[P * k + 2][idx])[1]
                         for k, a in enumerate(acts)]  # fmt: skip
 
-            def skeleton_energy():
+            def skeleton_energy(ps, psl, pctxs, pafters):
+                """Both actors' skeleton energy (:func:`_energy`) of the corrections ``ps`` of timeline frames
+                ``psl``, and their driven bones' rotations."""
                 total = 0.0
                 outs = []
                 for k, a in enumerate(acts):
-                    e, rot = _energy(a, params[P * k], params[P * k + 1], params[P * k + 2], sl, ctxs[k], cfg, fps, afters[k])
+                    e, rot = _energy(a, ps[P * k], ps[P * k + 1], ps[P * k + 2], psl, pctxs[k], cfg, fps, pafters[k])
                     total = total + e
                     outs.append(rot)
                 return total, outs
+
+            def held_rows(k, a, lo, hi):
+                """(joints, soles, openings) of actor ``k``'s window rows ``lo .. hi - 1`` as they are now,
+                without gradient (the context of a span of the window; None when empty)."""
+                if hi <= lo:
+                    return None
+                with torch.no_grad():
+                    rot = a.rotations(params[P * k][lo:hi], slice(s0 + lo, s0 + hi))
+                    (joints, _, _), sole = a.skeleton(rot, a.transl0[s0 + lo : s0 + hi] + params[P * k + 1][lo:hi])
+                    return joints, sole, params[P * k + 2][lo:hi].detach()
 
             opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
 
             def closure():
                 opt.zero_grad()
-                e, _ = skeleton_energy()
+                e, _ = skeleton_energy(params, sl, ctxs, afters)
                 e.backward()
                 return e
 
             opt.step(closure)
             if collide is not None:
 
-                def check():
-                    """The window's depths now (``penetration``'s dict) and, when contacts are held, them
-                    located (a :class:`Linearised` the next held pass starts from; else None)."""
+                def check(ps=params, psl=sl):
+                    """The depths of timeline frames ``psl`` at the corrections ``ps`` now (``penetration``'s
+                    dict) and, when contacts are held, them located (a :class:`Linearised` the next held pass
+                    starts from; else None)."""
                     with torch.no_grad():
-                        vs = [p.vertices for p in pose_all(slice(None))]
+                        vs = [p.vertices for p in pose_all(ps, psl, slice(None))]
+                        keys = range(psl.start, psl.stop)
                         if not cfg.collision_hold_contacts:
-                            return collide.penetration(vs[0], vs[1], keys=range(s0, s1)), None
-                        lin = collide.linearise(vs[0], vs[1], keys=range(s0, s1), margin_m=cfg.collision_margin_m)
+                            return collide.penetration(vs[0], vs[1], keys=keys), None
+                        lin = collide.linearise(vs[0], vs[1], keys=keys, margin_m=cfg.collision_margin_m)
                         return {"max_depth_m": lin.max_depth_m, "share": lin.share}, lin
 
                 pen, located = check()
@@ -661,19 +683,36 @@ class _Fitter:
                 out.share_before[ploc] = pen["share"]
                 hit = np.flatnonzero(pen["max_depth_m"] > 0)
                 out.collided += len(hit)
-                # (the deepest frame's depth, the corrections, the per-frame depths (W,)) after the skeleton pass;
-                # `best` below: the same after the best round so far
-                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in params], pen["max_depth_m"])
+                # the collision passes move the frames within `collision_span_s` of a hit frame (and those between,
+                # window rows r0 .. r1 - 1: timeline frames c0 .. c1 - 1), the rest of the window held as it is,
+                # its two frames on either side read as context: nothing moves elsewhere, so nothing new collides there
+                r0, r1 = _span(hit, s1 - s0, cfg, fps)
+                c0, c1, csl = s0 + r0, s0 + r1, slice(s0 + r0, s0 + r1)
+                if (r0, r1) == (0, s1 - s0):
+                    cparams, cctxs, cafters = params, ctxs, afters
+                else:
+                    cparams = [p[r0:r1].detach().clone().requires_grad_(p.requires_grad) for p in params]
+                    cctxs = [_context_join(ctxs[k], held_rows(k, a, max(r0 - 2, 0), r0), last=True) for k, a in enumerate(acts)]
+                    cafters = [_context_join(held_rows(k, a, r1, min(r1 + 2, s1 - s0)), afters[k], last=False) for k, a in enumerate(acts)]
+                    if located is not None:
+                        located = located.subset(np.arange(r0, r1))
+                    pen = {key: pen[key][r0:r1] for key in ("max_depth_m", "share")}
+                    hit = hit - r0
+                cbones = [p for k in range(len(acts)) for p in cparams[P * k : P * k + 2]]
+                chands = [cparams[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
+                # (the deepest frame's depth, the corrections, the per-frame depths (c1 - c0,)) after the skeleton
+                # pass; `best` below: the same after the best round so far
+                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"])
                 # the hands first: their openings have no data term, so they give way before any bone the
                 # suit and trackers hold, and the full rounds start from hands that already fit
-                passes = (["hands"] if hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
+                passes = (["hands"] if chands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
                 # held contacts first (cheap evaluations), except in the frames where a held round stalled: from then
                 # on those are located at every evaluation. A window the held rounds leave unsettled is fitted again
                 # from its skeleton pass with those frames and the ones left too deep located at every evaluation,
                 # and keeps the better answer
                 modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
-                # window rows whose contacts are located at every evaluation
-                exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(s1 - s0)
+                # rows of the span whose contacts are located at every evaluation
+                exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(c1 - c0)
                 held_best = None
                 for mode in modes if len(hit) else []:
                     best, restarts, settled = start, 0, False
@@ -683,18 +722,18 @@ class _Fitter:
                         # tolerance (the accuracy benchmark's dance turns: 24 and 19 s instead of 38 and 26 with all
                         # of them, in a sweep with a script outside the repo)
                         exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
-                        _restore(params, start[1])
-                        out.exact_windows.append(f"frames {s0}-{s1 - 1}")
+                        _restore(cparams, start[1])
+                        out.exact_windows.append(f"frames {c0}-{c1 - 1}")
                         located = None
                     n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
-                    for what in passes:
+                    for i_pass, what in enumerate(passes):
                         n_round += what == "all"
-                        weight = cfg.collision_weight * 4.0 ** max(n_round - 1, 0)  # x4 per full round
+                        weight = cfg.collision_weight * 4.0 ** i_pass  # x4 per pass, the hands' pass included
                         hit_t = torch.as_tensor(hit, device=dev)
-                        start_left = best[2]  # the window's depths at the start of this pass (it starts from the best)
-                        free = hands if what == "hands" else bones + hands
+                        start_left = best[2]  # the span's depths at the start of this pass (it starts from the best)
+                        free = chands if what == "hands" else cbones + chands
                         copt = torch.optim.LBFGS(free, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
-                        label = f"frames {s0}-{s1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
+                        label = f"frames {c0}-{c1 - 1}, " + ("the hands' collision pass" if what == "hands" else f"collision round {n_round}")
                         # rows of `hit` whose contacts are held, and those located at every evaluation
                         rows_x = np.flatnonzero(np.isin(hit, exact))
                         rows_h = np.setdiff1d(np.arange(len(hit)), rows_x)
@@ -703,19 +742,19 @@ class _Fitter:
                         held = None
                         if use_held:  # located where the pass starts (by the last check, if the bodies are still there)
                             if located is None:
-                                _, located = check()
+                                _, located = check(cparams, csl)
                             held = located.subset(hit[rows_h])
 
                         def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
                                      rows_x=rows_x):  # fmt: skip
-                            if not _finite(params):
+                            if not _finite(cparams):
                                 raise _Diverged
                             copt.zero_grad()
-                            e, rots = skeleton_energy()
+                            e, rots = skeleton_energy(cparams, csl, cctxs, cafters)
                             # every bone of the hit frames (fingers opened), for the few thousand (frame, vertex)
                             # pairs the loss reads, skinned with the gradient
-                            posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[s0 + hit_t] + params[P * k + 1][hit_t], False,
-                                                    params[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
+                            posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[c0 + hit_t] + cparams[P * k + 1][hit_t], False,
+                                                    cparams[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
 
                             def at(rows):  # the collision term's batch rows are `rows` of `hit`
                                 rows = torch.as_tensor(rows, device=dev)
@@ -726,8 +765,8 @@ class _Fitter:
                                 c = c + collide.linear_loss(held, at(rows_h), device=dev).sum()
                             if len(rows_x):  # the full meshes, without gradient, locate the contacts
                                 with torch.no_grad():
-                                    vs = [p.vertices for p in pose_all(hit_t[rows_x])]
-                                c = c + collide(vs[0], vs[1], keys=s0 + hit[rows_x], points=at(rows_x)).loss.sum()
+                                    vs = [p.vertices for p in pose_all(cparams, csl, hit_t[rows_x])]
+                                c = c + collide(vs[0], vs[1], keys=c0 + hit[rows_x], points=at(rows_x)).loss.sum()
                             e = e + weight * c
                             e.backward()
                             return e
@@ -737,16 +776,16 @@ class _Fitter:
                             copt.step(cclosure)
                         except _Diverged:
                             pass
-                        if not _finite(params):
+                        if not _finite(cparams):
                             # the line search stepped to non-finite corrections: keep the best round's answer
-                            _restore(params, best[1])
+                            _restore(cparams, best[1])
                             out.diverged.append(label)
                             break
                         # how deep one pass leaves a frame depends on where it started, so frames still deeper than
                         # the tolerance go round again with the term weighted up. Every frame that was ever hit keeps
                         # the term: released, it would spring back (the other terms still pull it in) while its
                         # neighbours are refitted. Frames pushed into contact by their neighbours join.
-                        now_pen, located = check()
+                        now_pen, located = check(cparams, csl)
                         left = now_pen["max_depth_m"]
                         if what == "all":  # the summary counts the full rounds (the hands' pass is extra)
                             out.rounds = max(out.rounds, n_round)
@@ -760,16 +799,16 @@ class _Fitter:
                             new = np.setdiff1d(np.flatnonzero(left > stall), exact)
                             exact = np.union1d(exact, new)
                             out.stalled.append(label)
-                            out.exact_frames += [int(s0 + f) for f in new]
+                            out.exact_frames += [int(c0 + f) for f in new]
                         if left.max() > best[0]:
                             # deeper than the best round so far (the data pull the bodies into each other harder
                             # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
                             # the next round starts again from the best answer, with the term weighted up
-                            _restore(params, best[1])
+                            _restore(cparams, best[1])
                             located = None
                             out.worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                         else:
-                            best = (float(left.max()), [p.detach().clone() for p in params], left)
+                            best = (float(left.max()), [p.detach().clone() for p in cparams], left)
                             if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
                                 settled = True
                                 break
@@ -784,7 +823,7 @@ class _Fitter:
                             stuck = deep & (now > 0.8 * start_left)
                             if stuck.any():  # each run of deep frames holding a stuck one, from the clean frames around it
                                 run = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
-                                if _restart_from_neighbours(params, deep & np.isin(run, run[stuck])):
+                                if _restart_from_neighbours(cparams, deep & np.isin(run, run[stuck])):
                                     restarts += 1
                                     located = None
                                     say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
@@ -792,7 +831,11 @@ class _Fitter:
                         break
                     held_best = best
                 if held_best is not None and held_best[0] < best[0]:  # the held rounds had left it less deep
-                    _restore(params, held_best[1])
+                    _restore(cparams, held_best[1])
+                if cparams is not params:
+                    with torch.no_grad():
+                        for p, q in zip(params, cparams):
+                            p[r0:r1] = q
             for k in range(len(acts)):  # overlapping frames take the later window's answer
                 for j, t in enumerate((deltas[k], dtransl[k], openings[k])):
                     t[loc] = params[P * k + j].detach()
@@ -924,6 +967,26 @@ def _restart_from_neighbours(params, stuck: np.ndarray) -> bool:
                     w = w.reshape(-1, *([1] * (p.dim() - 1)))
                     p[a:b] = (1 - w) * p[lo] + w * p[hi]
     return True
+
+
+def _span(hit: np.ndarray, W: int, cfg: FitConfig, fps: float) -> tuple[int, int]:
+    """Window rows ``r0 .. r1 - 1`` the collision passes of a ``W``-frame window move, for its hit frames
+    ``hit`` (rows, sorted): from ``cfg.collision_span_s`` before the first to as long after the last
+    (the whole window when that is 0 or there is no hit)."""
+    if not len(hit) or cfg.collision_span_s <= 0:
+        return 0, W
+    n = int(np.ceil(cfg.collision_span_s * fps))
+    return max(int(hit[0]) - n, 0), min(int(hit[-1]) + 1 + n, W)
+
+
+def _context_join(a, b, last: bool):
+    """Two consecutive (joints, soles, openings) contexts (either None) as one, cut to its last two
+    frames (``last``) or its first two; None when both are None."""
+    parts = [x for x in (a, b) if x is not None]
+    if not parts:
+        return None
+    cut = slice(-2, None) if last else slice(0, 2)
+    return tuple(torch.cat([x[i] for x in parts], 0)[cut] for i in range(3))
 
 
 def _rows(sl: slice, idx):
