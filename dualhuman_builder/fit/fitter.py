@@ -125,7 +125,7 @@ class FitConfig:
     #: gets another, up to this many full rounds. Each pass is weighted x4 over the one before it, the
     #: hands' pass included: ``collision_weight`` for the hands, x4 for round 1, x16 for round 2 ... (until
     #: 2026-11-24 round 1 repeated the hands' weight, and mostly did nothing where the hands' pass had
-    #: not: the accuracy benchmark's twelve fits 84 -> 63 s with the span below, figures in the README)
+    #: not: the accuracy benchmark's twelve fits 85.4 -> 63.0 s with the span below, figures in the README)
     collision_rounds: int = 6
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
