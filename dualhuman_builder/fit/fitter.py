@@ -124,8 +124,9 @@ class FitConfig:
     #: while a window still has a frame deeper than ``collision_tolerance_m`` after a collision pass, it
     #: gets another, up to this many full rounds. Each pass is weighted x4 over the one before it, the
     #: hands' pass included: ``collision_weight`` for the hands, x4 for round 1, x16 for round 2 ... (until
-    #: 2026-11-24 round 1 repeated the hands' weight, and mostly did nothing where the hands' pass had
-    #: not: the accuracy benchmark's twelve fits 85.4 -> 63.0 s with the span below, figures in the README)
+    #: 2026-11-24 round 1 repeated the hands' weight, and in a per-pass trace of the fit benchmark's hug
+    #: (a script outside the repo) mostly did nothing where the hands' pass had not: the accuracy
+    #: benchmark's twelve fits 85.4 -> 63.0 s with the span below, figures in the README)
     collision_rounds: int = 6
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
@@ -137,7 +138,7 @@ class FitConfig:
     #: a window's collision passes move the frames within this many seconds of a frame the skeleton pass
     #: left in contact, and those between; the rest of the window keeps its skeleton pass (0: the whole
     #: window moves). The smoothness terms couple each frame to its two neighbours on either side, so a
-    #: push fades out over a few frames
+    #: push fades out over a few frames; 0.3 s was not swept (only it and 0 were measured)
     collision_span_s: float = 0.3
     #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
     #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
@@ -613,9 +614,7 @@ class _Fitter:
             def context(k, a, csl):
                 """(joints, soles, openings) of timeline frames ``csl`` from the segment's tensors."""
                 cloc = slice(csl.start - a0, csl.stop - a0)
-                rot = a.rotations(deltas[k][cloc], csl)
-                (joints, _, _), sole = a.skeleton(rot, a.transl0[csl] + dtransl[k][cloc])
-                return joints, sole, openings[k][cloc]
+                return _context(a, deltas[k][cloc], dtransl[k][cloc], openings[k][cloc], csl)
 
             with torch.no_grad():
                 ctxs = [context(k, a, slice(s0 - ctx_n, s0)) if ctx_n else None for k, a in enumerate(acts)]
@@ -651,9 +650,7 @@ class _Fitter:
                 if hi <= lo:
                     return None
                 with torch.no_grad():
-                    rot = a.rotations(params[P * k][lo:hi], slice(s0 + lo, s0 + hi))
-                    (joints, _, _), sole = a.skeleton(rot, a.transl0[s0 + lo : s0 + hi] + params[P * k + 1][lo:hi])
-                    return joints, sole, params[P * k + 2][lo:hi].detach()
+                    return _context(a, *(params[P * k + j][lo:hi] for j in range(P)), slice(s0 + lo, s0 + hi))
 
             opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
 
@@ -977,6 +974,15 @@ def _span(hit: np.ndarray, W: int, cfg: FitConfig, fps: float) -> tuple[int, int
         return 0, W
     n = int(np.ceil(cfg.collision_span_s * fps))
     return max(int(hit[0]) - n, 0), min(int(hit[-1]) + 1 + n, W)
+
+
+def _context(act: _Actor, delta, dtransl, opening, sl: slice) -> tuple:
+    """What :func:`_energy` reads of fixed frames around the ones it fits: (joints ``(n, 22, 3)``,
+    sole vertices ``(n, 2 n_sole, 3)``, openings ``(n, 4)``) of timeline frames ``sl`` with the
+    corrections ``delta``/``dtransl``/``opening`` (call it without gradient)."""
+    rot = act.rotations(delta, sl)
+    (joints, _, _), sole = act.skeleton(rot, act.transl0[sl] + dtransl)
+    return joints, sole, opening
 
 
 def _context_join(a, b, last: bool):
