@@ -23,11 +23,19 @@ each mode once per value and prints the ratios to the first). Peak RSS is this p
 largest worker process's (as it reports it).
 
     .venv/bin/python benchmarks/bench_fit.py --minutes 1 --collision held --workers 1,auto
+
+The take's inputs can be written once and read back (``--save-inputs FILE.npz``, ``--inputs
+FILE.npz``), so that a machine without the scene generator's time to spare (a lent GPU) fits the
+same frames:
+
+    .venv/bin/python benchmarks/bench_fit.py --minutes 1 --save-inputs /tmp/hug1.npz --runs 0
+    .venv/bin/python benchmarks/bench_fit.py --inputs /tmp/hug1.npz --device cuda --collision held
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import statistics
 import sys
@@ -67,6 +75,36 @@ def inputs(model, minutes: float, fps: float, truth: list | None = None):
     return out
 
 
+_PER_FRAME = ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "ankles")  # ActorInput's (T, ...) fields
+
+
+def save_inputs(path: str, inp: list, truth: list, fps: float) -> None:
+    """Write the benchmark take (``inputs``' ActorInputs and ground-truth joints) to ``path`` (.npz)."""
+    arrays = {"fps": np.float64(fps), "actors": np.int64(len(inp))}
+    for k, (a, gt) in enumerate(zip(inp, truth)):
+        arrays[f"{k}_name"] = np.array(a.name)
+        arrays[f"{k}_shape_names"] = np.array(list(a.shape))
+        arrays[f"{k}_shape_values"] = np.array(list(a.shape.values()), np.float64)
+        arrays[f"{k}_truth"] = gt
+        for f in ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", "trk_offset", "ankles"):
+            arrays[f"{k}_{f}"] = getattr(a, f)
+    np.savez_compressed(path, **arrays)
+
+
+def load_inputs(path: str) -> tuple[list, list, float]:
+    """``(inputs, truth, fps)`` as :func:`save_inputs` wrote them."""
+    from dualhuman_builder.fit.fitter import ActorInput
+
+    with np.load(path) as z:
+        inp, truth = [], []
+        for k in range(int(z["actors"])):
+            shape = {str(n): float(v) for n, v in zip(z[f"{k}_shape_names"], z[f"{k}_shape_values"])}
+            inp.append(ActorInput(str(z[f"{k}_name"]), shape, *(z[f"{k}_{f}"] for f in (
+                "seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", "trk_offset", "ankles"))))
+            truth.append(z[f"{k}_truth"])
+        return inp, truth, float(z["fps"])
+
+
 def seam_jitter(res, truth: list, cfg) -> tuple[float, float, int]:
     """``(at seams, elsewhere, seams)``: the RMS (mm/frame^2) of the second difference over frames of
     the joint error (fit minus ground truth, 22 joints of both actors), in the frames around the
@@ -92,20 +130,25 @@ def seam_jitter(res, truth: list, cfg) -> tuple[float, float, int]:
 
 
 def anny_rate(model, batch: int, runs: int) -> float:
-    pose = torch.zeros(batch, model.num_bones, 3, requires_grad=True)
+    dev = model.device
+    pose = torch.zeros(batch, model.num_bones, 3, requires_grad=True, device=dev)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     times = []
     for _ in range(runs):
+        sync()
         t = time.perf_counter()
-        model.forward(pose, None, torch.zeros(batch, 3)).vertices.sum().backward()
+        model.forward(pose, None, torch.zeros(batch, 3, device=dev)).vertices.sum().backward()
+        sync()
         times.append(time.perf_counter() - t)
     return batch / statistics.median(times)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--minutes", type=float, default=1.0)
+    ap.add_argument("--minutes", type=float, default=None,
+                    help="take length (default 1; with --inputs: the file's first MINUTES, default all of it)")
     ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=int, default=3, help="fits per mode (median); 0: none (with --save-inputs)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--collision", choices=("all", "held", "exact", "off"), default="all",
                     help="fit without the collision term (off), with it and the contacts held through each pass "
@@ -115,6 +158,9 @@ def main():
     ap.add_argument("--workers", default="auto",
                     help="processes to fit the take's segments on, this one included: a number or auto (the fit's "
                          "default), or a comma-separated list to compare (default: auto)")
+    ap.add_argument("--save-inputs", metavar="FILE", help="write the take's inputs and ground truth to FILE (.npz)")
+    ap.add_argument("--inputs", metavar="FILE", help="read the take from FILE (--save-inputs) instead of generating it; "
+                    "--fps is then the file's")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import FitConfig, fit_actors
@@ -123,7 +169,21 @@ def main():
 
     model = get_body_model(args.device)
     truth: list = []
-    inp = inputs(get_body_model(), args.minutes, args.fps, truth)
+    if args.inputs:
+        inp, truth, args.fps = load_inputs(args.inputs)
+        if args.minutes is not None:  # the file's first frames
+            n = int(args.minutes * 60 * args.fps)
+            inp = [dataclasses.replace(a, **{f.name: getattr(a, f.name)[:n] for f in dataclasses.fields(a) if f.name in _PER_FRAME}) for a in inp]
+            truth = [gt[:n] for gt in truth]
+        args.minutes = len(inp[0].seg_rot) / args.fps / 60
+    else:
+        args.minutes = 1.0 if args.minutes is None else args.minutes
+        inp = inputs(get_body_model(), args.minutes, args.fps, truth)
+    if args.save_inputs:
+        save_inputs(args.save_inputs, inp, truth, args.fps)
+        print(f"inputs written to {args.save_inputs}")
+    if args.runs <= 0:
+        return
     T = len(inp[0].seg_rot)
     threads = FitConfig().torch_threads if args.threads is None else args.threads
     if threads > 0:
@@ -163,7 +223,9 @@ def main():
     print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
     print("ratio fit / anny raw: " + ", ".join(f"{v / (rate / 2):.3f} {m} ({w or 'auto'} workers)" for (m, w), v in medians.items()))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB this process"
-          + (f", {worker_mb} MB the largest worker process (VmHWM)" if worker_mb else ""))
+          + (f", {worker_mb} MB the largest worker process (VmHWM)" if worker_mb else "")
+          + (f"; peak GPU memory {torch.cuda.max_memory_allocated() / 2**20:.0f} MB (max_memory_allocated)"
+             if model.device.type == "cuda" else ""))
 
 
 if __name__ == "__main__":
