@@ -91,6 +91,7 @@ class BodyModel:
         _quiet_warp()
         import anny
 
+        _reuse_skinning_kernels()
         self.version = anny_version()
         self.device = torch.device(device)
         self.dtype = dtype
@@ -285,6 +286,24 @@ def _quiet_warp() -> None:
         warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
     except Exception:  # warp is optional for anny (it falls back to dense skinning)
         pass
+
+
+def _reuse_skinning_kernels() -> None:
+    """Make anny's warp skinning reuse its kernel for the same dtypes instead of building a new one
+    at every call.
+
+    anny 0.6.2's ``LinearBlendSkinning.forward`` calls ``warp_skinning.get_kernel``, which defines a
+    fresh ``@wp.kernel`` each time: warp then parses and generates its code again (~2.3 ms a call
+    here; 819 calls cost 1.9 s of a 45 s fit of the fit benchmark's hug, cProfile, 2026-11-26). The
+    kernel depends only on the arguments, so the first one built for them serves every later call."""
+    try:
+        from anny.skinning import warp_skinning
+    except Exception:  # no warp: anny skins densely
+        return
+    if not getattr(warp_skinning.get_kernel, "_dualhuman_reused", False):
+        reused = functools.lru_cache(maxsize=None)(warp_skinning.get_kernel)
+        reused._dualhuman_reused = True
+        warp_skinning.get_kernel = reused
 
 
 def _batch_of(*tensors) -> int:

@@ -199,6 +199,36 @@ def _closest(
         bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
 
 
+@wp.kernel
+def _safe_edges(
+    points: wp.array(dtype=wp.vec3),
+    bound: wp.array(dtype=wp.float32),
+    unknown: wp.array(dtype=wp.int32),
+    rows: wp.array(dtype=wp.int32),
+    e0: wp.array(dtype=wp.int32),
+    e1: wp.array(dtype=wp.int32),
+    n_vertices: wp.int32,
+    start: wp.int32,
+    safe: wp.array(dtype=wp.int32),
+):
+    """Edge ``k`` of problem ``rows[r]`` (``tid + start = r n_edges + k``) is 1 in ``safe`` when one
+    end's sign is unknown and the edge cannot cross the obstacle: its ends' distance bounds add up
+    to more than its length (with a margin for float32 rounding); 0 otherwise. ``points``,
+    ``bound`` and ``unknown`` are flat over ``(problem, vertex)``."""
+    i = wp.tid() + start
+    n_e = e0.shape[0]
+    r = i // n_e
+    k = i - r * n_e
+    base = rows[r] * n_vertices
+    a = base + e0[k]
+    b = base + e1[k]
+    ok = int(0)
+    if unknown[a] != 0 or unknown[b] != 0:
+        if bound[a] + bound[b] > wp.length(points[a] - points[b]) * (1.0 + 1.0e-4) + 1.0e-6:
+            ok = 1
+    safe[i] = ok
+
+
 @dataclass
 class CollisionResult:
     """Output of :meth:`CollisionTerm.__call__`, one entry per frame.
@@ -388,6 +418,7 @@ class CollisionTerm:
         self.obstacle_vertices = np.unique(self.obstacle_faces)
         # query points: the vertices of that surface; its undirected edges carry the sign flood fill
         self.edges = np.unique(e, axis=0)
+        self._edges_wp: tuple | None = None  # the edges' two columns as warp arrays (_safe_edges)
         self._surface_mask: np.ndarray | None = None
         bp = None if bvh_points is None else np.ascontiguousarray(np.asarray(bvh_points, dtype=np.float32))
         if bp is not None and (bp.ndim != 2 or bp.shape[1] != 3 or len(bp) < self.num_vertices_min or not np.isfinite(bp).all()):
@@ -588,17 +619,22 @@ class CollisionTerm:
 
     # ------------------------------------------------------------------------------------ broad phase
     def _active_frames(self, va: torch.Tensor, vb: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
-        """A new call (``last_stats`` cleared): the broad phase's ``(B,)`` mask and its frames."""
+        """A new call (``last_stats`` cleared): the broad phase's ``(B,)`` mask and its frames; the
+        bodies' boxes are kept for :meth:`_contacts` (``_boxes``: ``(lo_a, hi_a, lo_b, hi_b)``, each
+        ``(B, 3)`` float32 numpy, ungrown)."""
         self.last_stats = {}
-        active = self._broad_phase(va, vb)
+        active, boxes = self._broad_phase(va, vb, with_boxes=True)
+        self._boxes = tuple(np.asarray(b.detach().cpu().numpy(), np.float32) for b in boxes)
         return active, np.flatnonzero(active.cpu().numpy())
 
-    def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor) -> torch.Tensor:
-        """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap."""
+    def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor, with_boxes: bool = False):
+        """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap (and, ``with_boxes``, the
+        boxes ``(lo_a, hi_a, lo_b, hi_b)`` ``(B, 3)`` themselves, ungrown)."""
         ta, tb = va.transpose(1, 2).contiguous(), vb.transpose(1, 2).contiguous()  # fast reductions
-        lo_a, hi_a = ta.amin(dim=2) - self.pad, ta.amax(dim=2) + self.pad
-        lo_b, hi_b = tb.amin(dim=2) - self.pad, tb.amax(dim=2) + self.pad
-        return ((lo_a <= hi_b) & (lo_b <= hi_a)).all(dim=1)
+        boxes = ta.amin(dim=2), ta.amax(dim=2), tb.amin(dim=2), tb.amax(dim=2)
+        lo_a, hi_a, lo_b, hi_b = boxes[0] - self.pad, boxes[1] + self.pad, boxes[2] - self.pad, boxes[3] + self.pad
+        active = ((lo_a <= hi_b) & (lo_b <= hi_a)).all(dim=1)
+        return (active, boxes) if with_boxes else active
 
     # ------------------------------------------------------------------------------------ warp plumbing
     def _meshes(self, points: np.ndarray, only: np.ndarray | None = None) -> np.ndarray:
@@ -683,6 +719,42 @@ class CollisionTerm:
         wp.synchronize_device("cpu")
         return sd.numpy().copy(), face.numpy().copy(), bary.numpy().copy()
 
+    def _safe_edges(self, points: np.ndarray, bound: np.ndarray, unknown: np.ndarray, rows: np.ndarray,
+                    V: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """The query mesh's edges the sign flood fill may follow in problems ``rows``: those with an
+        end of unknown sign whose ends' distance bounds add up to more than their length, so the edge
+        cannot cross the obstacle. ``points (N, 3)``, ``bound (N,)``, ``unknown (N,)`` flat over
+        ``(problem, vertex)``, ``V`` vertices a problem. Returns ``(problem, edge)`` index arrays
+        into ``rows``' problems and :attr:`edges`.
+
+        One warp kernel over ``(rows, edges)``, in threads (numpy's gathers by flat index took ~0.3 s
+        of a hug window's ~1 s first check: line profile, 2026-11-26)."""
+        E = len(self.edges)
+        if self._edges_wp is None:
+            self._edges_wp = tuple(wp.array(np.ascontiguousarray(self.edges[:, i], np.int32), dtype=wp.int32, device="cpu")
+                                   for i in (0, 1))  # fmt: skip
+        n = len(rows) * E
+        arrs = [
+            wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu"),
+            wp.array(np.ascontiguousarray(bound, np.float32), dtype=wp.float32, device="cpu"),
+            wp.array(np.ascontiguousarray(unknown, np.int32), dtype=wp.int32, device="cpu"),
+            wp.array(np.ascontiguousarray(rows, np.int32), dtype=wp.int32, device="cpu"),
+            *self._edges_wp,
+        ]
+        safe = wp.zeros(n, dtype=wp.int32, device="cpu")
+        if _safe_edges.key not in _loaded:  # load the module once, before any concurrent launch
+            wp.launch(_safe_edges, dim=1, inputs=[*arrs, V, 0, safe], device="cpu")
+            _loaded.add(_safe_edges.key)
+
+        def run(items):
+            s, e = int(items[0]), int(items[-1]) + 1
+            wp.launch(_safe_edges, dim=e - s, inputs=[*arrs, V, s, safe], device="cpu")
+
+        self._threaded(run, np.arange(n), _MIN_CHUNK)
+        wp.synchronize_device("cpu")
+        hit = np.flatnonzero(safe.numpy())
+        return rows[hit // E], hit % E
+
     # ------------------------------------------------------------------------------------ exact contacts
     def _contacts(self, va: torch.Tensor, vb: torch.Tensor, frames: np.ndarray, keys: list | None = None,
                   margin: float = 0.0) -> _Contacts:  # fmt: skip
@@ -698,14 +770,15 @@ class CollisionTerm:
         O = np.empty_like(Q)
         O[0::2], O[1::2] = A, Bv
         # (P, 3) boxes of the obstacles (of all their vertices: a box holding the surface is all a lower
-        # bound needs), and (P, V) each query vertex's distance to it, a lower bound of the distance to
-        # the obstacle (torch: vectorised and threaded over these ~1e6-vertex arrays, zero-copy)
-        Ot = torch.from_numpy(O).transpose(1, 2)
-        lo_t, hi_t = Ot.amin(dim=2), Ot.amax(dim=2)
+        # bound needs; the broad phase's, in float32: rounding is monotonic, so these are the boxes of
+        # O), and (P, V) each query vertex's distance to it, a lower bound of the distance to the
+        # obstacle (torch: vectorised over these ~1e6-vertex arrays, zero-copy)
+        la, ha, lb_, hb = (b[frames] for b in self._boxes)
+        lo, hi = np.empty((2 * K, 3), np.float32), np.empty((2 * K, 3), np.float32)
+        lo[0::2], lo[1::2], hi[0::2], hi[1::2] = la, lb_, ha, hb
+        lo_t, hi_t = torch.from_numpy(lo), torch.from_numpy(hi)
         Qt = torch.from_numpy(Q)
-        gap = (lo_t[:, None] - Qt).clamp_min_(0.0) + (Qt - hi_t[:, None]).clamp_min_(0.0)  # one is 0
-        dbox = torch.linalg.vector_norm(gap, dim=2).numpy()
-        lo, hi = lo_t.numpy(), hi_t.numpy()
+        dbox = torch.linalg.vector_norm(Qt - torch.clamp(Qt, lo_t[:, None], hi_t[:, None]), dim=2).numpy()
         if self._surface_mask is None or len(self._surface_mask) != V:
             self._surface_mask = np.zeros(V, bool)
             self._surface_mask[self.obstacle_vertices] = True
@@ -813,15 +886,10 @@ class CollisionTerm:
             full(open_)
         elif len(open_):
             # (2) sign flood fill along the query mesh's edges that cannot cross the obstacle
-            e0, e1 = self.edges[:, 0], self.edges[:, 1]
-            unknown = (sgn == 0).reshape(P, V)
-            rows = np.flatnonzero(unknown.any(axis=1))  # problems with something to fill
-            pp, ee = np.nonzero(unknown[rows][:, e0] | unknown[rows][:, e1])
-            pp = rows[pp]
-            u, w = pp * V + e0[ee], pp * V + e1[ee]
-            length = np.linalg.norm(Qf[u] - Qf[w], axis=1)
-            safe = lb[u] + lb[w] > length * (1.0 + 1e-4) + 1e-6
-            u, w = u[safe], w[safe]
+            unknown = sgn == 0
+            rows = np.flatnonzero(unknown.reshape(P, V).any(axis=1))  # problems with something to fill
+            pp, ee = self._safe_edges(Qf, lb, unknown, rows, V)
+            u, w = pp * V + self.edges[ee, 0], pp * V + self.edges[ee, 1]
             graph = coo_matrix((np.ones(len(u), np.int8), (u, w)), shape=(N, N))
             n_comp, comp = connected_components(graph, directed=False)
             known = sgn != 0
