@@ -101,6 +101,21 @@ def test_batched_forward_matches_single_and_is_differentiable(body_model):
         m.shape_tensor({"stature": 1.8})
 
 
+def test_anny_skinning_reuses_its_kernel_and_skins_as_before(body_model):
+    """anny 0.6.2 defines a new warp kernel at every skinning call; the model makes it reuse one."""
+    from anny.skinning import warp_skinning
+
+    assert hasattr(warp_skinning.get_kernel, "cache_info"), "BodyModel did not wrap anny's get_kernel"
+    pose = 0.2 * torch.randn(3, body_model.num_bones, 3, generator=torch.Generator().manual_seed(3))
+    body_model(pose[:1])
+    before = warp_skinning.get_kernel.cache_info()
+    batch = body_model(pose).vertices  # another batch size, the same kernel
+    after = warp_skinning.get_kernel.cache_info()
+    assert after.hits > before.hits and after.currsize == before.currsize
+    for i in range(3):  # the reused kernel skins each frame of a batch as a batch of one
+        torch.testing.assert_close(body_model(pose[i : i + 1]).vertices[0], batch[i], atol=1e-6, rtol=0)
+
+
 def test_kinematics_only_bone_heads_equal_the_skinned_forward(body_model):
     torch.manual_seed(3)
     pose = torch.randn(5, body_model.num_bones, 3) * 0.4

@@ -443,3 +443,31 @@ def test_bad_input(ct, bodies):
         CollisionTerm(np.zeros((0, 3), int))
     with pytest.raises(ValueError, match="band_m must be a positive"):
         CollisionTerm(bodies["faces"], band_m=0.0)
+
+
+def test_safe_edges_are_those_an_unknown_sign_may_cross(bodies):
+    """The flood fill's edges (warp kernel) against the rule in numpy: an end of unknown sign, and the
+    ends' distance bounds adding up to more than the edge (a margin for float32 rounding)."""
+    ct = CollisionTerm(bodies["faces"])
+    V = bodies["a"].shape[1]
+    P = 3
+    rng = np.random.default_rng(5)
+    pts = (bodies["a"][0].numpy()[None] + rng.normal(0, 0.002, (P, V, 3))).astype(np.float32).reshape(-1, 3)
+    bound = rng.uniform(0.0, 0.02, P * V).astype(np.float32)
+    unknown = rng.random(P * V) < 0.3
+    rows = np.array([0, 2])  # problem 1 has nothing to fill
+    pp, ee = ct._safe_edges(pts, bound, unknown, rows, V)
+    e0, e1 = ct.edges[:, 0], ct.edges[:, 1]
+    want = set()
+    for p in rows:
+        u, w = p * V + e0, p * V + e1
+        length = np.linalg.norm(pts[u] - pts[w], axis=1)
+        ok = (unknown[u] | unknown[w]) & (bound[u] + bound[w] > length * (1 + 1e-4) + 1e-6)
+        # float32 rounding may decide an edge within 1e-6 relative of the limit either way
+        close = np.abs(bound[u] + bound[w] - (length * (1 + 1e-4) + 1e-6)) < 1e-6 * (bound[u] + bound[w])
+        want |= {(int(p), int(k)) for k in np.flatnonzero(ok & ~close)}
+        got_here = {(int(q), int(k)) for q, k in zip(pp, ee) if q == p}
+        assert {(int(p), int(k)) for k in np.flatnonzero(ok & ~close)} <= got_here
+        assert got_here <= {(int(p), int(k)) for k in np.flatnonzero(ok | close)}
+    assert 1 not in set(pp.tolist()) and len(want) > 1000
+

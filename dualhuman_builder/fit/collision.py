@@ -73,8 +73,8 @@ Method ``"warp"`` (default): exact depths, banded query and sign flood fill
     it took whichever sign came last (on the fit benchmark's hug one frame read 18.8 mm deep where
     the winding number says 20.8; on a noise-posed pair 437 vertices were on the wrong side, 138
     now). Fewer far vertices get a full query each. (3) Far vertices found inside get a full
-    query for their depth. Queries run in warp CPU kernels split over
-    ``threads`` threads.
+    query for their depth. Queries, and the test of which edges are safe (:meth:`CollisionTerm._safe_edges`),
+    run in warp CPU kernels split over ``threads`` threads.
 
 Reuse across calls (``keys``)
     An optimiser evaluates the term many times on bodies that barely move. When the caller names
