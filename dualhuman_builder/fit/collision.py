@@ -419,6 +419,7 @@ class CollisionTerm:
         # query points: the vertices of that surface; its undirected edges carry the sign flood fill
         self.edges = np.unique(e, axis=0)
         self._edges_wp: tuple | None = None  # the edges' two columns as warp arrays (_safe_edges)
+        self._boxes: tuple | None = None  # the current call's bodies' boxes (_active_frames)
         self._surface_mask: np.ndarray | None = None
         bp = None if bvh_points is None else np.ascontiguousarray(np.asarray(bvh_points, dtype=np.float32))
         if bp is not None and (bp.ndim != 2 or bp.shape[1] != 3 or len(bp) < self.num_vertices_min or not np.isfinite(bp).all()):
