@@ -75,7 +75,9 @@ def inputs(model, minutes: float, fps: float, truth: list | None = None):
     return out
 
 
-_PER_FRAME = ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "ankles")  # ActorInput's (T, ...) fields
+#: ActorInput's array fields; the (T, ...) ones are all but the trackers' segments and offsets
+_ARRAYS = ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", "trk_offset", "ankles")
+_PER_FRAME = tuple(f for f in _ARRAYS if f not in ("trk_segment", "trk_offset"))
 
 
 def save_inputs(path: str, inp: list, truth: list, fps: float) -> None:
@@ -86,7 +88,7 @@ def save_inputs(path: str, inp: list, truth: list, fps: float) -> None:
         arrays[f"{k}_shape_names"] = np.array(list(a.shape))
         arrays[f"{k}_shape_values"] = np.array(list(a.shape.values()), np.float64)
         arrays[f"{k}_truth"] = gt
-        for f in ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", "trk_offset", "ankles"):
+        for f in _ARRAYS:
             arrays[f"{k}_{f}"] = getattr(a, f)
     np.savez_compressed(path, **arrays)
 
@@ -99,8 +101,7 @@ def load_inputs(path: str) -> tuple[list, list, float]:
         inp, truth = [], []
         for k in range(int(z["actors"])):
             shape = {str(n): float(v) for n, v in zip(z[f"{k}_shape_names"], z[f"{k}_shape_values"])}
-            inp.append(ActorInput(str(z[f"{k}_name"]), shape, *(z[f"{k}_{f}"] for f in (
-                "seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", "trk_offset", "ankles"))))
+            inp.append(ActorInput(str(z[f"{k}_name"]), shape, **{f: z[f"{k}_{f}"] for f in _ARRAYS}))
             truth.append(z[f"{k}_truth"])
         return inp, truth, float(z["fps"])
 
@@ -173,7 +174,7 @@ def main():
         inp, truth, args.fps = load_inputs(args.inputs)
         if args.minutes is not None:  # the file's first frames
             n = int(args.minutes * 60 * args.fps)
-            inp = [dataclasses.replace(a, **{f.name: getattr(a, f.name)[:n] for f in dataclasses.fields(a) if f.name in _PER_FRAME}) for a in inp]
+            inp = [dataclasses.replace(a, **{f: getattr(a, f)[:n] for f in _PER_FRAME}) for a in inp]
             truth = [gt[:n] for gt in truth]
         args.minutes = len(inp[0].seg_rot) / args.fps / 60
     else:

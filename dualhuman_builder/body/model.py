@@ -300,10 +300,8 @@ def _reuse_skinning_kernels() -> None:
         from anny.skinning import warp_skinning
     except Exception:  # no warp: anny skins densely
         return
-    if not getattr(warp_skinning.get_kernel, "_dualhuman_reused", False):
-        reused = functools.lru_cache(maxsize=None)(warp_skinning.get_kernel)
-        reused._dualhuman_reused = True
-        warp_skinning.get_kernel = reused
+    if not hasattr(warp_skinning.get_kernel, "cache_info"):  # not wrapped yet
+        warp_skinning.get_kernel = functools.lru_cache(maxsize=None)(warp_skinning.get_kernel)
 
 
 def _batch_of(*tensors) -> int:

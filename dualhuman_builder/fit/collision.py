@@ -624,18 +624,18 @@ class CollisionTerm:
         bodies' boxes are kept for :meth:`_contacts` (``_boxes``: ``(lo_a, hi_a, lo_b, hi_b)``, each
         ``(B, 3)`` float32 numpy, ungrown)."""
         self.last_stats = {}
-        active, boxes = self._broad_phase(va, vb, with_boxes=True)
+        active, boxes = self._broad_phase(va, vb)
         self._boxes = tuple(np.asarray(b.detach().cpu().numpy(), np.float32) for b in boxes)
         return active, np.flatnonzero(active.cpu().numpy())
 
-    def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor, with_boxes: bool = False):
-        """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap (and, ``with_boxes``, the
-        boxes ``(lo_a, hi_a, lo_b, hi_b)`` ``(B, 3)`` themselves, ungrown)."""
+    def _broad_phase(self, va: torch.Tensor, vb: torch.Tensor) -> tuple[torch.Tensor, tuple]:
+        """``(B,)`` bool: the boxes of a and b, grown by ``pad_m``, overlap; and the boxes ``(lo_a, hi_a,
+        lo_b, hi_b)`` ``(B, 3)`` themselves, ungrown."""
         ta, tb = va.transpose(1, 2).contiguous(), vb.transpose(1, 2).contiguous()  # fast reductions
         boxes = ta.amin(dim=2), ta.amax(dim=2), tb.amin(dim=2), tb.amax(dim=2)
         lo_a, hi_a, lo_b, hi_b = boxes[0] - self.pad, boxes[1] + self.pad, boxes[2] - self.pad, boxes[3] + self.pad
         active = ((lo_a <= hi_b) & (lo_b <= hi_a)).all(dim=1)
-        return (active, boxes) if with_boxes else active
+        return active, boxes
 
     # ------------------------------------------------------------------------------------ warp plumbing
     def _meshes(self, points: np.ndarray, only: np.ndarray | None = None) -> np.ndarray:
