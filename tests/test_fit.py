@@ -57,6 +57,11 @@ def test_body_rig_is_anny_exactly(model):
     for x, y in zip(ga, gb):
         assert torch.allclose(x, y, atol=1e-5)
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
+    # without gradient the whole mesh is skinned over each vertex's nonzero weights (BodyRig._skin_sparse)
+    with torch.no_grad():
+        sparse = rig.pose(A, transl, True, opening).vertices
+    assert rig._nz_wp is not None and sparse.shape == (3, rig.num_vertices, 3)
+    assert (sparse - rig.pose(A, transl, True, opening).vertices).abs().max() < 1e-5  # anny's kernel, with gradient
 
 
 def test_the_skeleton_terms_linear_pose_is_the_rigs_pose(model):
@@ -370,7 +375,7 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     def deeper_after_the_first_pass(self, va, vb, keys=None):
         out = real(self, va, vb, keys)
         calls.append(float(out["max_depth_m"].max()))
-        if len(calls) == 2:  # 1: after the skeleton pass, 2: after collision round 1, 3: round 2, 4: the summary's
+        if len(calls) == 2:  # 1: after the skeleton pass, 2: after collision round 1, 3: round 2 (the summary reuses it)
             out["max_depth_m"] = np.full_like(out["max_depth_m"], calls[0] + 0.010)
         return out
 
@@ -383,7 +388,7 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     monkeypatch.setattr(collision.CollisionTerm, "penetration", deeper_after_the_first_pass)
     monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
     s = fit_actors(model, inputs, 15.0, cfg).summary
-    assert s["collision_frames"] == T and s["collision_diverged"] == [] and len(calls) == 4
+    assert s["collision_frames"] == T and s["collision_diverged"] == [] and len(calls) == 3
     assert s["collision_rounds_used"] == 2
     assert s["collision_worsened"] == [f"frames 0-1, collision round 1: {1000 * calls[0] + 10:.1f} mm after, "
                                        f"{1000 * calls[0]:.1f} mm before"]  # fmt: skip
@@ -498,6 +503,36 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
         np.testing.assert_allclose(a.transl, b.transl, atol=1e-6)
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-5)
     assert s["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
+
+
+def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch):
+    """The depths a fit reports after the collision term are those of the bodies it returns, frame by
+    frame (measured again here on anny's own meshes), though the end of a segment measures only the
+    frames no check measured at their final corrections (here: none; before 2026-11-26 it measured
+    every frame again)."""
+    from dualhuman_builder.fit import fitter as fitter_module
+    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.fit.skeleton import torso_vertices
+
+    T = 20
+    inputs = _overlapping_pair(T, dx=0.17)  # arms through the partner
+    cfg = FitConfig(window=8, overlap=2, segment_windows=0, iterations=3, collision_iterations=2, collision_rounds=1)
+    measured = []
+    real = fitter_module._Fitter.depths
+
+    def count(self, s0, s1, *a, **k):
+        measured.append((s0, s1))
+        return real(self, s0, s1, *a, **k)
+
+    monkeypatch.setattr(fitter_module._Fitter, "depths", count)
+    res = fit_actors(model, inputs, 15.0, cfg, workers=1)
+    got = res.frames["penetration depth (mm)/with collision term"]
+    assert res.summary["collision_frames"] >= T and measured == []
+    va, vb = (torch.as_tensor(np.array(a.vertices())) for a in res.sequence.actors)
+    term = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01, guard_vertices=torso_vertices(model))
+    fresh = term.penetration(va, vb)["max_depth_m"] * 1000
+    assert fresh.max() > 0.1  # the bodies still touch somewhere, so the comparison means something
+    np.testing.assert_allclose(got, fresh, atol=0.05)
 
 
 def test_the_collision_passes_move_only_the_frames_around_the_contacts(model):

@@ -601,6 +601,9 @@ class _Fitter:
         else:
             deltas, dtransl, openings = ([torch.tensor(x[a0 - origin : a1 - origin], device=dev) for x in init[key]] for key in ("delta", "dtransl", "opening"))
         out = _Part(first, [], [], [], np.zeros(last - first), np.zeros(last - first))
+        # per frame of the answer, the depth (m) and penetrating share of its current corrections where a check
+        # measured them (nan: not measured), so that the answer's depths need no second measurement
+        known = np.full((2, last - first), np.nan)
         if collide is not None:
             collide.clear_memo()  # each segment starts from the same state in any process
         P = 3  # optimised tensors per actor: delta, dtransl, opening
@@ -678,6 +681,7 @@ class _Fitter:
                 pen, located = check()
                 out.pen_before[ploc] = pen["max_depth_m"]
                 out.share_before[ploc] = pen["share"]
+                known[:, ploc] = pen["max_depth_m"], pen["share"]
                 hit = np.flatnonzero(pen["max_depth_m"] > 0)
                 out.collided += len(hit)
                 # the collision passes move the frames within `collision_span_s` of a hit frame (and those between,
@@ -699,7 +703,7 @@ class _Fitter:
                 chands = [cparams[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
                 # (the deepest frame's depth, the corrections, the per-frame depths (c1 - c0,)) after the skeleton
                 # pass; `best` below: the same after the best round so far
-                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"])
+                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"], pen["share"])
                 # the hands first: their openings have no data term, so they give way before any bone the
                 # suit and trackers hold, and the full rounds start from hands that already fit
                 passes = (["hands"] if chands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
@@ -710,7 +714,7 @@ class _Fitter:
                 modes = ["held", "exact"] if cfg.collision_hold_contacts else ["exact"]
                 # rows of the span whose contacts are located at every evaluation
                 exact = np.zeros(0, np.int64) if cfg.collision_hold_contacts else np.arange(c1 - c0)
-                held_best = None
+                best, held_best = start, None
                 for mode in modes if len(hit) else []:
                     best, restarts, settled = start, 0, False
                     hit = np.flatnonzero(start[2] > 0)
@@ -805,7 +809,7 @@ class _Fitter:
                             located = None
                             out.worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                         else:
-                            best = (float(left.max()), [p.detach().clone() for p in cparams], left)
+                            best = (float(left.max()), [p.detach().clone() for p in cparams], left, now_pen["share"])
                             if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
                                 settled = True
                                 break
@@ -829,6 +833,14 @@ class _Fitter:
                     held_best = best
                 if held_best is not None and held_best[0] < best[0]:  # the held rounds had left it less deep
                     _restore(cparams, held_best[1])
+                # the span's answer is one a check measured (the best round's, the held rounds' best or the skeleton
+                # pass's) unless a restart in the last round moved it since: then the end of the segment measures it
+                span = slice(ploc.start + r0, ploc.start + r1)
+                known[:, span] = np.nan
+                for snap in (best, held_best):
+                    if snap is not None and all(torch.equal(p, q) for p, q in zip(cparams, snap[1])):
+                        known[:, span] = snap[2], snap[3]
+                        break
                 if cparams is not params:
                     with torch.no_grad():
                         for p, q in zip(params, cparams):
@@ -838,8 +850,10 @@ class _Fitter:
                     t[loc] = params[P * k + j].detach()
             say(f"window {wi + 1}/{n_windows}: frames {s0}-{s1 - 1}" if n_windows else f"seam: frames {s0}-{s1 - 1} fitted again")
         out.delta, out.dtransl, out.opening = ([x[first - a0 : last - a0].cpu().numpy() for x in xs] for xs in (deltas, dtransl, openings))
-        if collide is not None:  # how deep the answer leaves each frame, here where the segments run in parallel
-            out.pen_after, out.share_after = self.depths(first, last, deltas, dtransl, openings, origin=a0)
+        if collide is not None:  # how deep the answer leaves each frame (measured here where no check did)
+            out.pen_after, out.share_after = known
+            for a, b in _runs(np.isnan(known[0])):
+                out.pen_after[a:b], out.share_after[a:b] = self.depths(first + a, first + b, deltas, dtransl, openings, origin=a0)
         return out
 
     def depths(self, s0: int, s1: int, delta: list, dtransl: list, opening: list, origin: int) -> tuple[np.ndarray, np.ndarray]:
@@ -950,9 +964,8 @@ def _restart_from_neighbours(params, stuck: np.ndarray) -> bool:
     W = len(stuck)
     if stuck.all():
         return False
-    edges = np.flatnonzero(np.diff(np.r_[0, stuck.astype(np.int8), 0]))
     with torch.no_grad():
-        for a, b in zip(edges[::2], edges[1::2]):  # frames a .. b-1
+        for a, b in _runs(stuck):  # frames a .. b-1
             lo, hi = a - 1, b
             for p in params:
                 if lo < 0:
@@ -964,6 +977,12 @@ def _restart_from_neighbours(params, stuck: np.ndarray) -> bool:
                     w = w.reshape(-1, *([1] * (p.dim() - 1)))
                     p[a:b] = (1 - w) * p[lo] + w * p[hi]
     return True
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of True in ``mask (n,)``, as ``(first, end)`` index pairs."""
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
 
 
 def _span(hit: np.ndarray, W: int, cfg: FitConfig, fps: float) -> tuple[int, int]:
