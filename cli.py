@@ -763,7 +763,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 @click.option("--device", default="cpu", show_default=True,
               help="torch device for the fit, e.g. cuda. The CPU is the faster choice even where a GPU is: the fit's "
                    "many small tensor operations gain little there, and a GPU fit runs in one process "
-                   "(a 1-minute hug on an H200 machine: 8.5-10.2 frame pairs/s on cuda, 47-51 on its 16 CPUs).")
+                   "(a 1-minute hug on an H200 machine: 8.5-10.2 frame pairs/s on cuda, 39-51 on its 16 CPUs).")
 @click.option("--threads", type=click.IntRange(min=0), default=1, show_default=True,
               help="torch CPU threads during the fit. 1 makes a fit of the same take repeat exactly; more can be "
                    "~10-20 % faster but the result then varies from run to run; 0 keeps torch's own setting.")
