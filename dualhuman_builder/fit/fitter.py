@@ -692,7 +692,7 @@ class _Fitter:
 
             def skeleton_energy(ps, psl, pctxs, pafters):
                 """Both actors' skeleton energy (:func:`_energy`, at once) of the corrections ``ps`` of timeline
-                frames ``psl``, and their driven bones' rotations (a list: actor k's ``(n, 23, 3, 3)``)."""
+                frames ``psl``, and their driven bones' rotations (per actor, ``(n, 23, 3, 3)``)."""
                 e, rot = _energy(self.stack, *(torch.stack(ps[j :: P]) for j in range(P)), psl, _stacked(pctxs), cfg, fps,
                                  _stacked(pafters))  # fmt: skip
                 return e, rot.unbind(0)
@@ -751,8 +751,8 @@ class _Fitter:
                     hit = hit - r0
                 cbones = [p for k in range(len(acts)) for p in cparams[P * k : P * k + 2]]
                 chands = [cparams[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
-                # (the deepest frame's depth, the corrections, the per-frame depths (c1 - c0,)) after the skeleton
-                # pass; `best` below: the same after the best round so far
+                # (the deepest frame's depth, the corrections, the per-frame depths and penetrating shares (c1 - c0,)
+                # each) after the skeleton pass; `best` below: the same after the best round so far
                 start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"], pen["share"])
                 # the hands first: their openings have no data term, so they give way before any bone the
                 # suit and trackers hold, and the full rounds start from hands that already fit

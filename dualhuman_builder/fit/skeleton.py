@@ -290,8 +290,6 @@ class BodyRig:
         frames of one body here (2-core x86 CPU; a script outside the repo), the same vertices to
         float rounding (2.4e-7 m). The fit skins its full meshes without gradient only (to find the
         contacts, to measure depths), so that is where this runs."""
-        import warp as wp
-
         if self._nz_wp is None:
             self._nz_wp = (wp.array(self._nz_ptr.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
                            wp.array(self._nz_bone.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
