@@ -27,7 +27,8 @@ window's collision passes start with one over the openings alone, then the full 
 The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
 rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a
 48-frame window's energy and gradient, both actors, in ~7 ms instead of ~21 through the whole
-rig; both actors as one stack of tensors, :class:`_Stack`, 5.5-6.5 -> 4.3-4.4 ms on 2026-11-26);
+rig; both actors as one stack of tensors, :class:`_Stack`, 5.5-6.5 -> 4.1-4.4 ms on 2026-11-26, a script
+outside the repo);
 the full meshes are skinned only for frames whose bodies penetrate after the skeleton pass
 (measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`), and only those frames get
 the collision pass (their full meshes skinned without gradient, to find the
@@ -86,6 +87,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
 from dualhuman_builder.errors import DualhumanError
+from dualhuman_builder.fit.skeleton import linear_pose
 
 
 class FitError(DualhumanError):
@@ -255,7 +257,9 @@ def stance_mask(ankles: np.ndarray, fps: float, sole_offset: np.ndarray, cfg: Fi
 class _Actor:
     """Tensors of one actor for the fitter."""
 
-    def __init__(self, model, inp: ActorInput, fps: float, cfg: FitConfig, soles: dict):
+    def __init__(self, model, inp: ActorInput, fps: float, cfg: FitConfig, soles: dict, slots: int):
+        """``slots``: tracker slots of the skeleton terms' heads, at least this actor's ``K`` (the rest
+        are padding, the root's head, never valid: both actors' terms then stack, :class:`_Stack`)."""
         from dualhuman_builder.fit.skeleton import BodyRig
 
         dev, dt = torch.device(cfg.device), torch.float32
@@ -274,10 +278,12 @@ class _Actor:
         self.trk_bone = self.rig.segment_bones[self.trk_seg] if len(inp.trk_segment) else self.trk_seg
         self.trk_off = torch.as_tensor(np.asarray(inp.trk_offset, np.float64), dtype=dt, device=dev)
         # what the skeleton terms read, linear in the driven rotations (BodyRig.pose_linear): the 22
-        # joints, the trackers' bones, the two feet's bones, the sole vertices
+        # joints, the trackers' bones (padded to `slots` with the root), the two feet's bones, the sole vertices
         self.joints = self.rig.model.joint22_index.to(dev)
+        self.slots = int(slots)
         foot = self.rig.segment_bones[[MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]
-        self.rig.add_linear("skeleton", torch.cat([self.joints, self.trk_bone, foot]).cpu().numpy(),
+        pad = torch.zeros(self.slots - len(self.trk_bone), dtype=torch.int64, device=dev)
+        self.rig.add_linear("skeleton", torch.cat([self.joints, self.trk_bone, pad, foot]).cpu().numpy(),
                             np.concatenate([soles["L"], soles["R"]]))  # fmt: skip
         with torch.no_grad():
             eye = torch.eye(3, device=dev).expand(1, len(MVN_SEGMENTS), 3, 3)
@@ -294,11 +300,10 @@ class _Actor:
 
     def skeleton(self, rot, transl):
         """What the skeleton terms read of driven-bone rotations ``rot (n, 23, 3, 3)`` and root
-        positions ``transl (n, 3)`` (metres): the heads ``((n, 22, 3) joints, (n, K, 3) the trackers'
+        positions ``transl (n, 3)`` (metres): the heads ``((n, 22, 3) joints, (n, slots, 3) the trackers'
         bones, (n, 2, 3) the feet's)`` and the sole vertices ``(n, 2 n_sole, 3)`` (left then right)."""
         heads, soles = self.rig.pose_linear(rot, transl, "skeleton")
-        nj, nk = len(self.joints), len(self.trk_bone)
-        return (heads[:, :nj], heads[:, nj : nj + nk], heads[:, nj + nk :]), soles
+        return _split_heads(heads, len(self.joints), self.slots), soles
 
     def pose(self, delta, dtransl, sl, vertices=True, opening=None):
         """Bones (and ``vertices``) of timeline frames ``sl`` (a slice or an index tensor) with the
@@ -308,15 +313,20 @@ class _Actor:
         return rot, self.rig.pose(rot, self.transl0[sl] + dtransl, vertices, opening)
 
 
+def _split_heads(heads: torch.Tensor, nj: int, K: int) -> tuple:
+    """The skeleton terms' heads ``(..., nj + K + 2, 3)`` as (joints, trackers' bones, feet's)."""
+    return heads[..., :nj, :], heads[..., nj : nj + K, :], heads[..., nj + K :, :]
+
+
 class _Stack:
     """The actors' constants for :func:`_energy`, stacked along a first axis ``A`` (actors), the
-    trackers padded to the most any actor has (``Kp``; a padded tracker is never valid): one set of
-    tensor operations for both actors instead of one per actor (a skeleton evaluation is ~100 small
-    operations, whose cost is their count, not their size)."""
+    trackers padded to the most any actor has (``Kp``, :class:`_Actor`'s ``slots``; a padded tracker
+    is never valid): one set of tensor operations for both actors instead of one per actor (a skeleton
+    evaluation is ~100 small operations, whose cost is their count, not their size)."""
 
     def __init__(self, acts: list[_Actor]):
         dev = acts[0].target.device
-        A, K = len(acts), max(len(a.trk_seg) for a in acts)
+        K = acts[0].slots
         self.K, self.nj, self.n_sole = K, len(acts[0].joints), acts[0].n_sole
         pad = [K - len(a.trk_seg) for a in acts]
         self.target = torch.stack([a.target for a in acts])  # (A, T, S, 3, 3)
@@ -332,15 +342,11 @@ class _Stack:
         self.trk_pos = torch.stack([torch.cat([a.trk_pos, z(T, p, 3, device=dev)], 1) for a, p in zip(acts, pad)])  # (A, T, Kp, 3)
         self.trk_valid = torch.stack([torch.cat([a.trk_valid, z(T, p, dtype=torch.bool, device=dev)], 1)
                                       for a, p in zip(acts, pad)]).float()  # fmt: skip
-        # what pose_linear's "skeleton" reads, with the padded trackers' bones (the root's)
-        mats, wsums = [], []
-        for a, p in zip(acts, pad):
-            mat, wsum, nb = a.rig._linear["skeleton"]
-            cut = nb - 2  # the joints and trackers' bones, then the two feet's
-            mats.append(torch.cat([mat[:, :cut], mat[:, :1].expand(-1, p), mat[:, cut:]], 1))
-            wsums.append(torch.cat([wsum[:cut], wsum[:1].expand(p), wsum[cut:]]))
-        self.mat, self.wsum = torch.stack(mats), torch.stack(wsums)  # (A, 3S, N), (A, N)
-        self.n_heads = self.nj + K + 2
+        # what each rig's "skeleton" reads (BodyRig.pose_linear), with a frame axis to broadcast over
+        linear = [a.rig.linear("skeleton") for a in acts]
+        self.mat = torch.stack([m for m, _, _ in linear])[:, None]  # (A, 1, 3S, N)
+        self.wsum = torch.stack([w for _, w, _ in linear])[:, None]  # (A, 1, N)
+        self.n_heads = linear[0][2]
 
     def rotations(self, delta, sl):
         """Driven-bone rotations ``(A, n, 23, 3, 3)`` of timeline frames ``sl`` with the corrections
@@ -351,12 +357,8 @@ class _Stack:
         """:meth:`_Actor.skeleton` of every actor at once: ``rot (A, n, 23, 3, 3)``, ``transl (A, n, 3)`` ->
         heads ``((A, n, 22, 3) joints, (A, n, Kp, 3) trackers' bones, (A, n, 2, 3) feet's)`` and soles
         ``(A, n, 2 n_sole, 3)``."""
-        A, n = rot.shape[:2]
-        out = (rot.transpose(2, 3).reshape(A, n, 3, -1) @ self.mat[:, None]).transpose(-1, -2)  # (A, n, N, 3)
-        out = out + self.wsum[:, None, :, None] * transl[:, :, None, :]
-        nj, K = self.nj, self.K
-        heads = out[:, :, : self.n_heads]
-        return (heads[:, :, :nj], heads[:, :, nj : nj + K], heads[:, :, nj + K :]), out[:, :, self.n_heads :]
+        out = linear_pose(rot, transl, self.mat, self.wsum)  # (A, n, N, 3)
+        return _split_heads(out[:, :, : self.n_heads], self.nj, self.K), out[:, :, self.n_heads :]
 
 
 def _energy(st: _Stack, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig, fps: float, after=None):
@@ -619,7 +621,8 @@ class _Fitter:
 
         self.cfg, self.fps, self.T = cfg, fps, len(inputs[0].seg_rot)
         soles = sole_vertices(model)
-        self.acts = [_Actor(model, inp, fps, cfg, soles) for inp in inputs]
+        slots = max(len(inp.trk_segment) for inp in inputs)
+        self.acts = [_Actor(model, inp, fps, cfg, soles, slots) for inp in inputs]
         self.stack = _Stack(self.acts)
         self.dev = torch.device(cfg.device)
         # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same

@@ -237,10 +237,13 @@ class BodyRig:
         skeleton terms read only these: a 48-frame window's energy and gradient, both actors,
         21 -> 6.6 ms)."""
         mat, wsum, nb = self._linear[name]
-        B = seg_rot.shape[0]
-        out = (seg_rot.transpose(1, 2).reshape(B, 3, -1) @ mat).transpose(1, 2)  # (B, Jn + n, 3)
-        out = out + wsum[None, :, None] * transl[:, None, :]
+        out = linear_pose(seg_rot, transl, mat, wsum)  # (B, Jn + n, 3)
         return out[:, :nb], out[:, nb:]
+
+    def linear(self, name: str) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """The matrix ``(3S, Jn + n)``, the weight sums ``(Jn + n,)`` and the bone count ``Jn`` that
+        :meth:`add_linear` registered as ``name`` (for :func:`linear_pose` on stacks of rigs)."""
+        return self._linear[name]
 
     def add_subset(self, name: str, vertex_ids) -> None:
         """Register a named vertex subset that :meth:`pose` can skin with ``vertices=name``."""
@@ -341,6 +344,15 @@ class BodyRig:
         """anny pose parameters ``(B, J, 3)`` rotation vectors (what a BodyTrack stores)."""
         rot = self.bone_rotations(seg_rot, opening)
         return roma.rotmat_to_rotvec(self.model.global_to_local(rot))
+
+
+def linear_pose(seg_rot: torch.Tensor, transl: torch.Tensor, mat: torch.Tensor, wsum: torch.Tensor) -> torch.Tensor:
+    """:meth:`BodyRig.pose_linear`'s product for any leading axes ``...``: ``seg_rot (..., S, 3, 3)``,
+    ``transl (..., 3)``, ``mat (..., 3S, N)`` and ``wsum (..., N)`` (broadcast against the leading
+    axes: one rig's, or a stack of rigs' with a frame axis of 1) -> positions ``(..., N, 3)``."""
+    lead = seg_rot.shape[:-3]
+    out = (seg_rot.transpose(-3, -2).reshape(*lead, 3, -1) @ mat).transpose(-1, -2)
+    return out + wsum[..., :, None] * transl[..., None, :]
 
 
 @wp.kernel
