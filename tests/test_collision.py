@@ -471,3 +471,78 @@ def test_safe_edges_are_those_an_unknown_sign_may_cross(bodies):
         assert got_here <= {(int(p), int(k)) for k in np.flatnonzero(ok | close)}
     assert 1 not in set(pp.tolist()) and len(want) > 1000
 
+
+
+def _finger_groups(body_model) -> np.ndarray:
+    """``(V,)`` 1 for vertices skinned mostly to the left hand's fingers, 2 the right's, 0 the rest."""
+    names = body_model.bone_names
+    bone = body_model.vertex_bone()
+    return np.array([1 + ("RL".find(names[b][-1]) == 0) if names[b].startswith("finger") else 0 for b in bone])
+
+
+def test_contacts_only_the_moving_vertices_change_give_the_same_gradient(bodies, body_model):
+    """``moving_only`` keeps the located contacts that a move of some vertices can change (their query
+    vertex or a corner of their triangle moves): the held loss then differs by a constant, with the same
+    gradient, when only those vertices move."""
+    ct = CollisionTerm(bodies["faces"])
+    a, b = (x.double() for x in place(bodies, dz=HUG_DZ))
+    lin = ct.linearise(a, b, margin_m=0.005)
+    V = a.shape[1]
+    moving = a[0, :, 0].numpy() > 0.05  # one side of the body (either body: the same vertex indices)
+    sub = ct.moving_only(lin, moving)
+    c = lin.contacts
+    n_kept = len(sub.contacts.frame)
+    assert 0 < n_kept < len(c.frame)
+    # a kept contact touches a moving vertex; a dropped one does not
+    touch = moving[c.vert] | moving[ct.obstacle_faces[c.face]].any(axis=1)
+    assert n_kept == int(touch.sum()) and np.array_equal(sub.contacts.vert, c.vert[touch])
+    mask = torch.as_tensor(moving, dtype=torch.float64)[:, None]
+
+    def loss_and_grad(term, shift):
+        t = torch.zeros(2, 3, dtype=torch.float64, requires_grad=True)
+        loss = ct.linear_loss(term, lambda body, f, v: (a, b)[body][f, v] + (t[body] + shift[body]) * mask[v],
+                              dtype=torch.float64)  # fmt: skip
+        loss.sum().backward()
+        return loss.detach(), t.grad
+
+    for shift in (torch.zeros(2, 3, dtype=torch.float64), torch.tensor([[0.0, 0.0, 0.004], [0.003, -0.002, 0.0]], dtype=torch.float64)):
+        (lf, gf), (ls, gs) = loss_and_grad(lin, shift), loss_and_grad(sub, shift)
+        assert gf.abs().max() > 0 and torch.allclose(gf, gs, rtol=1e-9, atol=1e-15)
+        if shift.any():
+            assert torch.allclose(lf - ls, gap, rtol=1e-9, atol=1e-15)  # the dropped contacts' share did not change
+        gap = lf - ls
+    assert gap.item() > 0
+    with pytest.raises(ValueError, match="moving must be"):
+        ct.moving_only(lin, moving[:-1])
+
+
+def test_signs_are_kept_away_from_the_parts_that_alone_moved(bodies, body_model):
+    """With ``move_groups`` (the fingers of each hand), a call after only the fingers moved keeps the
+    remembered signs of the vertices far from them, where the plain bound (the obstacle's largest move)
+    keeps none: fewer queries, the same answer as a fresh call. A move elsewhere falls back to the plain
+    bound, with the same answer too."""
+    groups = _finger_groups(body_model)
+    fingers = torch.as_tensor(groups > 0)
+    a, b = place(bodies, dz=HUG_DZ)
+    # every finger vertex 3 cm down, the rest still
+    a2, b2 = (x + torch.where(fingers[:, None], torch.tensor([0.0, -0.03, 0.0]), torch.zeros(3)) for x in (a, b))
+    fresh = CollisionTerm(bodies["faces"], band_m=0.03).linearise(a2, b2, margin_m=0.005)
+    reused = {}
+    for name, mg in (("plain", None), ("groups", groups)):
+        ct = CollisionTerm(bodies["faces"], band_m=0.03, move_groups=mg)
+        ct.linearise(a, b, keys=[7], margin_m=0.005)
+        lin = ct.linearise(a2, b2, keys=[7], margin_m=0.005)
+        reused[name] = ct.last_stats["reused"]
+        for f in ("frame", "side", "vert", "face"):
+            assert np.array_equal(getattr(lin.contacts, f), getattr(fresh.contacts, f))
+        assert np.allclose(lin.contacts.depth, fresh.contacts.depth, atol=1e-7)
+        assert np.array_equal(lin.penetrating, fresh.penetrating)
+        # then everything moves 1 mm: the same answer as a fresh call
+        a3, b3 = a2 + 0.001, b2 - 0.001
+        lin3 = ct.linearise(a3, b3, keys=[7], margin_m=0.005)
+        fresh3 = CollisionTerm(bodies["faces"], band_m=0.03).linearise(a3, b3, margin_m=0.005)
+        assert np.array_equal(lin3.contacts.vert, fresh3.contacts.vert) and np.array_equal(lin3.penetrating, fresh3.penetrating)
+    assert fresh.penetrating[0] > 0
+    assert reused["groups"] > 5 * reused["plain"] and reused["groups"] > 15000, reused
+    with pytest.raises(ValueError, match="move_groups"):
+        CollisionTerm(bodies["faces"], move_groups=groups[:100])

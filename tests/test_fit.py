@@ -56,6 +56,21 @@ def test_body_rig_is_anny_exactly(model):
     assert ga[1].abs().max() > 1e-3
     for x, y in zip(ga, gb):
         assert torch.allclose(x, y, atol=1e-5)
+    # on the CPU in float32 skin_at runs two warp kernels (_SkinAt): the same values and gradients as its
+    # tensor operations, repeated pairs adding up
+    f2, v2 = f.repeat(40), v.repeat(40)
+    w2 = torch.randn(len(f2), 3)
+    fused = rig.skin_at(rig.pose(A, transl, False, opening), f2, v2)
+    assert type(fused.grad_fn).__name__ == "_SkinAtBackward"
+    gf = torch.autograd.grad((fused * w2).sum(), (A, opening))
+    plain = rig._skin_at_torch(rig.pose(A, transl, False, opening), f2, v2)
+    gt = torch.autograd.grad((plain * w2).sum(), (A, opening))
+    assert (fused - plain).abs().max() < 1e-6
+    for x, y in zip(gf, gt):
+        assert (x - y).abs().max() < 1e-4 * y.abs().max()
+    # which hand's openings move each vertex
+    assert rig.opening_groups[finger] == 1 and rig.opening_groups[v[0]] == 0 and rig.opening_vertices[finger]
+    assert set(np.unique(rig.opening_groups)) == {0, 1, 2}
     assert (rig.retarget(rig.segment_frames(A)) - A).abs().max() < 1e-5
     # without gradient the whole mesh is skinned over each vertex's nonzero weights (BodyRig._skin_sparse)
     with torch.no_grad():

@@ -138,6 +138,7 @@ assembly runs on the tensors' own device. A :class:`CollisionTerm` serialises it
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -227,6 +228,39 @@ def _safe_edges(
         if bound[a] + bound[b] > wp.length(points[a] - points[b]) * (1.0 + 1.0e-4) + 1.0e-6:
             ok = 1
     safe[i] = ok
+
+
+@wp.kernel
+def _group_box_bound(
+    a: wp.array2d(dtype=wp.vec3),
+    b: wp.array2d(dtype=wp.vec3),
+    da: wp.array2d(dtype=wp.float32),
+    db: wp.array2d(dtype=wp.float32),
+    still: wp.array(dtype=wp.int32),
+    l0: wp.array2d(dtype=wp.float32),
+    lo: wp.array2d(dtype=wp.vec3),
+    hi: wp.array2d(dtype=wp.vec3),
+    start: wp.int32,
+    left: wp.array2d(dtype=wp.float32),
+):
+    """Problem ``r = 2 i + side`` (``tid + start``), vertex ``v`` (:meth:`CollisionTerm._group_bound`):
+    where ``still[r]``, ``left = max(left, min(l0, distance from the query vertex to the nearest of the
+    row's boxes lo..hi) - its move)``; the query vertex is b's (side 0) or a's (side 1) of frame ``i``."""
+    t, v = wp.tid()
+    r = t + start
+    if still[r] == 0:
+        return
+    i = r // 2
+    p = b[i, v]
+    dq = db[i, v]
+    if r - 2 * i == 1:
+        p = a[i, v]
+        dq = da[i, v]
+    near = float(1.0e30)
+    for g in range(lo.shape[1]):
+        c = wp.min(wp.max(p, lo[r, g]), hi[r, g])
+        near = wp.min(near, wp.length(p - c))
+    left[r, v] = wp.max(left[r, v], wp.min(l0[r, v], near) - dq)
 
 
 @dataclass
@@ -356,6 +390,7 @@ class CollisionTerm:
         flood_min: int = 1500,
         max_memo: int = 128,
         bvh_points=None,
+        move_groups=None,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -425,6 +460,17 @@ class CollisionTerm:
         if bp is not None and (bp.ndim != 2 or bp.shape[1] != 3 or len(bp) < self.num_vertices_min or not np.isfinite(bp).all()):
             raise ValueError(f"bvh_points must be finite (V, 3) points with V >= {self.num_vertices_min}, got shape {bp.shape}")
         self._bvh_points = bp
+        # parts that may move alone (see _prior): per group k > 0 the corners of every obstacle face
+        # touching one of its vertices (such a face moves with the group)
+        self._move_groups: list[np.ndarray] = []
+        if move_groups is not None:
+            mg = np.asarray(move_groups)
+            if mg.ndim != 1 or len(mg) < self.num_vertices_min or not np.issubdtype(mg.dtype, np.integer) or mg.min() < 0:
+                raise ValueError(f"move_groups must be (V,) non-negative integers with V >= {self.num_vertices_min}, got {mg.shape} {mg.dtype}")
+            for k in np.unique(mg[mg > 0]):
+                touch = (mg[self.obstacle_faces] == k).any(axis=1)
+                self._move_groups.append(np.unique(self.obstacle_faces[touch]))
+            self._move_group_of = mg
         self._pool: list[wp.Mesh] = []
         self._pool_points: list[wp.array] = []
         self._executor: ThreadPoolExecutor | None = None
@@ -562,6 +608,25 @@ class CollisionTerm:
         dev = torch.device("cpu") if device is None else torch.device(device)
         loss = self._assemble(lin.contacts, lin.B, lin.V, dev, dtype, points, normals=lin.normals)
         return loss + self._guard_loss(lin.guard, lin.B, lin.V, dev, dtype, points)
+
+    def moving_only(self, lin: Linearised, moving: np.ndarray) -> Linearised:
+        """The contacts of ``lin`` whose held depth changes when only the vertices ``moving`` (``(V,)``
+        bool, the same in both bodies) move: their query vertex or a corner of their triangle is
+        among them. The others' held depths are constant over such a move, so :meth:`linear_loss`
+        on the answer differs from it on ``lin`` by a constant per frame: the same gradient, the same
+        optimiser steps, fewer points to read. The coincidence guard is kept unless none of its
+        vertices is ``moving``. (The fitter's hands' pass moves only the fingers: of a hug window's
+        ~24,000 located contacts a few thousand touch them.)"""
+        moving = np.asarray(moving, bool)
+        if moving.shape != (lin.V,):
+            raise ValueError(f"moving must be a ({lin.V},) bool mask, got shape {moving.shape}")
+        c = lin.contacts
+        keep = moving[c.vert] | moving[self.obstacle_faces[c.face]].any(axis=1)
+        sub = _Contacts(frame=c.frame[keep], side=c.side[keep], vert=c.vert[keep], depth=c.depth[keep],
+                        face=c.face[keep], bary=c.bary[keep])  # fmt: skip
+        guard_moves = bool(moving.any()) if self._guard_idx is None else bool(moving[self._guard_idx.numpy()].any())
+        guard = lin.guard if guard_moves else lin.guard[:0]
+        return dataclasses.replace(lin, contacts=sub, normals=lin.normals[keep], guard=guard)
 
     def clear_memo(self) -> None:
         """Forget the signs kept for ``keys`` (see the module docstring)."""
@@ -816,11 +881,54 @@ class CollisionTerm:
         db = torch.linalg.vector_norm(torch.from_numpy(Bv[have]) - b0, dim=2)
         # side 0: b's vertices against a's surface; side 1: a's against b's
         move = torch.stack([db + da[:, ov].amax(dim=1, keepdim=True), da + db[:, ov].amax(dim=1, keepdim=True)], 1)
-        left = (l0 - move.reshape(-1, V)).numpy()
+        left = l0 - move.reshape(-1, V)
+        if self._move_groups:
+            left = self._group_bound(left, l0, have, A, Bv, a0, b0, da, db)
+        left = left.numpy()
         keep = left > 1e-6 + 1e-6 * l0.numpy()  # float32 rounding of the stored bound
         sgn[rows] = np.where(keep, s0, 0)
         lb[rows] = np.where(keep, left, 0.0)
         return sgn, lb
+
+    def _group_bound(self, left, l0, have, A, Bv, a0, b0, da, db):
+        """A finer :meth:`_prior` bound where only ``move_groups`` parts of an obstacle moved (the hands'
+        collision pass opens the fingers and moves nothing else, by centimetres: the plain bound,
+        which takes the obstacle's largest move, then keeps no sign anywhere).
+
+        Every obstacle face either touches a moved group -- it lies, at the old and new positions
+        and all between, in the box of its group's face corners old and new -- or moved not at
+        all. So a query vertex ``q`` that moved by ``|dq|`` is still farther than ``min(lb - |dq|,
+        min_g dist(q, box_g) - |dq|)`` from the obstacle, all the way along the move: where that is
+        positive its sign holds. ``left (2n, V)``: the plain bound, raised where this one is larger
+        (problems whose obstacle moved outside the groups keep it)."""
+        n, V = len(have), left.shape[1]
+        rest = torch.from_numpy(self._move_group_of[:V] == 0)
+        still = torch.stack([da[:, rest].amax(dim=1) == 0, db[:, rest].amax(dim=1) == 0], 1).reshape(-1)  # (2n,) row 2i + side
+        if not bool(still.any()):
+            return left
+        A_now, B_now = torch.from_numpy(A if n == len(A) else A[have]), torch.from_numpy(Bv if n == len(Bv) else Bv[have])
+        G = len(self._move_groups)
+        lo, hi = torch.empty(n, 2, G, 3), torch.empty(n, 2, G, 3)  # per frame, side (obstacle a, b) and group
+        for g, corners in enumerate(self._move_groups):
+            c = torch.from_numpy(corners)
+            for side, (old, new) in enumerate(((a0, A_now), (b0, B_now))):
+                o, w = old[:, c], new[:, c]
+                lo[:, side, g] = torch.minimum(o.amin(dim=1), w.amin(dim=1))
+                hi[:, side, g] = torch.maximum(o.amax(dim=1), w.amax(dim=1))
+        arrs = [wp.from_torch(A_now, dtype=wp.vec3), wp.from_torch(B_now, dtype=wp.vec3), wp.from_torch(da), wp.from_torch(db),
+                wp.from_torch(still.to(torch.int32)), wp.from_torch(l0), wp.from_torch(lo.reshape(2 * n, G, 3), dtype=wp.vec3),
+                wp.from_torch(hi.reshape(2 * n, G, 3), dtype=wp.vec3)]  # fmt: skip
+        out = wp.from_torch(left)
+
+        def run(rows):
+            wp.launch(_group_box_bound, dim=(len(rows), V), inputs=[*arrs, int(rows[0])], outputs=[out], device="cpu")
+
+        if _group_box_bound.key not in _loaded:  # load the module once, before any concurrent launch
+            run(np.arange(1))
+            _loaded.add(_group_box_bound.key)
+        self._threaded(run, np.arange(2 * n), 8)
+        wp.synchronize_device("cpu")
+        return left
 
     def _remember(self, fkeys: list, A: np.ndarray, Bv: np.ndarray, sgn: np.ndarray, lb: np.ndarray) -> None:
         for k, key in enumerate(fkeys):

@@ -131,6 +131,7 @@ class FitConfig:
     #: (a script outside the repo) mostly did nothing where the hands' pass had not: the accuracy
     #: benchmark's twelve fits 85.4 -> 63.0 s with the span below, figures in the README)
     collision_rounds: int = 6
+    collision_weight_step: float = 4.0
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
     #: half the issue's goal, so a palm resting a millimetre deep on the partner goes round again too)
@@ -378,17 +379,15 @@ def _energy(st: _Stack, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig,
         site = trk_heads + (seg_frame @ st.trk_off[:, None, :, :, None])[..., 0]
         r = (site - st.trk_pos[:, sl]).pow(2).sum(-1) * st.trk_valid[:, sl]
         e = e + r.sum() / cfg.sigma_tracker_m**2
-    soles_all, stance, o = soles, st.stance[:, sl], opening
+    soles_all, stance = soles, st.stance[:, sl]
     if ctx is not None:
         joints = torch.cat([ctx[0], joints], 1)
         soles_all = torch.cat([ctx[1], soles_all], 1)
         stance = torch.cat([st.stance[:, sl.start - ctx[0].shape[1] : sl.start], stance], 1)
-        o = torch.cat([ctx[2], o], 1)
     if after is not None:
         joints = torch.cat([joints, after[0]], 1)
         soles_all = torch.cat([soles_all, after[1]], 1)
         stance = torch.cat([stance, st.stance[:, sl.stop : sl.stop + after[0].shape[1]]], 1)
-        o = torch.cat([o, after[2]], 1)
     if joints.shape[1] >= 3:
         acc = joints[:, 2:] - 2 * joints[:, 1:-1] + joints[:, :-2]
         s_a = cfg.sigma_accel_m_s2 / fps**2
@@ -404,13 +403,24 @@ def _energy(st: _Stack, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig,
         step = (feet[:, 1:] - feet[:, :-1])[..., [0, 2]].pow(2).sum(-1)
         both = (stance[:, 1:] & stance[:, :-1]).float()
         e = e + (step * both).sum() / cfg.sigma_slide_m**2
+    return _opening_energy(opening, ctx, after, cfg, fps, e), rot
+
+
+def _opening_energy(opening, ctx, after, cfg: FitConfig, fps: float, base=0.0):
+    """The hand openings' terms of :func:`_energy`, added to ``base`` (:func:`_energy` passes its bones'
+    terms, so the sum keeps its order): the prior toward relaxed hands, the walls of
+    :data:`OPENING_RANGE` and the openings' second difference over ``ctx``'s, ``opening (A, n, 4)``'s
+    and ``after``'s frames (``ctx``, ``after`` as for :func:`_energy`; only their openings are read).
+    The hands' collision pass moves nothing else, so this is all of the skeleton energy that changes
+    there."""
+    o = torch.cat([x for x in (None if ctx is None else ctx[2], opening, None if after is None else after[2]) if x is not None], 1)
     lo, hi = OPENING_RANGE
-    e = e + opening.pow(2).sum() / cfg.sigma_hand_opening**2
+    e = base + opening.pow(2).sum() / cfg.sigma_hand_opening**2
     e = e + (torch.relu(opening - hi).pow(2) + torch.relu(lo - opening).pow(2)).sum() / 0.01**2
     if o.shape[1] >= 3:
         s_h = cfg.sigma_hand_opening_accel_s2 / fps**2
         e = e + (o[:, 2:] - 2 * o[:, 1:-1] + o[:, :-2]).pow(2).sum() / s_h**2
-    return e, rot
+    return e
 
 
 def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = FitConfig(),
@@ -624,6 +634,8 @@ class _Fitter:
         slots = max(len(inp.trk_segment) for inp in inputs)
         self.acts = [_Actor(model, inp, fps, cfg, soles, slots) for inp in inputs]
         self.stack = _Stack(self.acts)
+        #: ``(V,)`` bool: the vertices the hand openings move (one topology and skinning for both actors)
+        self.fingers = self.acts[0].rig.opening_vertices
         self.dev = torch.device(cfg.device)
         # a 3 cm band (exact signed distances out to 3 cm; the broad-phase boxes still grow by 1 cm): the same
         # answers as the 1 cm default, but vertices keep a known sign over larger moves between L-BFGS
@@ -637,7 +649,8 @@ class _Fitter:
                 eye = torch.eye(3, device=self.dev).expand(1, len(MVN_SEGMENTS), 3, 3)
                 rest = self.acts[0].rig.pose(eye, torch.zeros(1, 3, device=self.dev), True).vertices[0].cpu().numpy()
             self.collide = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01,
-                                         guard_vertices=torso_vertices(model), bvh_points=rest)  # fmt: skip
+                                         guard_vertices=torso_vertices(model), bvh_points=rest,
+                                         move_groups=self.acts[0].rig.opening_groups)  # fmt: skip
 
     def segment(self, wins: list[tuple[int, int, int]], n_windows: int, say: Callable[[str], None],
                 init: dict | None = None, origin: int = 0) -> _Part:  # fmt: skip
@@ -782,7 +795,7 @@ class _Fitter:
                     n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
                     for i_pass, what in enumerate(passes):
                         n_round += what == "all"
-                        weight = cfg.collision_weight * 4.0 ** i_pass  # x4 per pass, the hands' pass included
+                        weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # x4 per pass, the hands' pass included
                         hit_t = torch.as_tensor(hit, device=dev)
                         start_left = best[2]  # the span's depths at the start of this pass (it starts from the best)
                         free = chands if what == "hands" else cbones + chands
@@ -798,16 +811,29 @@ class _Fitter:
                             if located is None:
                                 _, located = check(cparams, csl)
                             held = located.subset(hit[rows_h])
+                            if what == "hands":  # only the fingers move: the other contacts' depths are constants
+                                held = collide.moving_only(held, self.fingers)
+                        # the hands' pass moves the openings alone: the bones' rotations and positions are constants
+                        # there (no gradient, no skeleton terms but the openings', _opening_energy)
+                        fixed = None
+                        if what == "hands":
+                            with torch.no_grad():
+                                fixed = self.stack.rotations(torch.stack(cparams[0::P]), csl).unbind(0)
 
                         def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
-                                     rows_x=rows_x):  # fmt: skip
+                                     rows_x=rows_x, fixed=fixed):  # fmt: skip
                             if not _finite(cparams):
                                 raise _Diverged
                             copt.zero_grad()
-                            e, rots = skeleton_energy(cparams, csl, cctxs, cafters)
+                            if fixed is None:
+                                e, rots = skeleton_energy(cparams, csl, cctxs, cafters)
+                                transl = [cparams[P * k + 1] for k in range(len(acts))]
+                            else:
+                                e = _opening_energy(torch.stack(cparams[2::P]), _stacked(cctxs), _stacked(cafters), cfg, fps)
+                                rots, transl = fixed, [cparams[P * k + 1].detach() for k in range(len(acts))]
                             # every bone of the hit frames (fingers opened), for the few thousand (frame, vertex)
                             # pairs the loss reads, skinned with the gradient
-                            posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[c0 + hit_t] + cparams[P * k + 1][hit_t], False,
+                            posed_hit = [a.rig.pose(rots[k][hit_t], a.transl0[c0 + hit_t] + transl[k][hit_t], False,
                                                     cparams[P * k + 2][hit_t]) for k, a in enumerate(acts)]  # fmt: skip
 
                             def at(rows):  # the collision term's batch rows are `rows` of `hit`

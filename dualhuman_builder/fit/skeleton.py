@@ -160,6 +160,15 @@ class BodyRig:
             depth[j] = depth.get(int(parents[j]), 0) + 1
         order = sorted(moved)
         self._moved_by_openings = order
+        #: ``(V,)`` int: which hand's openings move each vertex (a nonzero weight on a finger bone they
+        #: turn): 1 the left, 2 the right, 0 neither
+        w, idx = self._w_all.cpu().numpy(), self._idx_all.cpu().numpy()
+        side = np.zeros(len(parents), np.int64)
+        for j in order:
+            side[j] = 1 + SIDES.index(names[j].rsplit(".", 1)[-1])
+        self.opening_groups = np.where(w > 0, side[idx], 0).max(axis=1)
+        #: ``(V,)`` bool: the vertices the hand openings move
+        self.opening_vertices = self.opening_groups > 0
         # bones below an opened one keep a zero rotation vector (identity at any opening): they are
         # only re-composed with their parent's new rotation
         self._open_rv = torch.as_tensor(np.array([rv.get(j, np.zeros(3)) for j in order]), device=self.device, dtype=self.dtype)
@@ -293,20 +302,25 @@ class BodyRig:
         frames of one body here (2-core x86 CPU; a script outside the repo), the same vertices to
         float rounding (2.4e-7 m). The fit skins its full meshes without gradient only (to find the
         contacts, to measure depths), so that is where this runs."""
-        if self._nz_wp is None:
-            self._nz_wp = (wp.array(self._nz_ptr.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
-                           wp.array(self._nz_bone.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
-                           wp.array(self._nz_u.cpu().numpy().astype(np.float32), dtype=wp.vec3, device="cpu"),
-                           wp.array(self._nz_w.cpu().numpy().astype(np.float32), dtype=wp.float32, device="cpu"))  # fmt: skip
         B, V = rot.shape[0], self.num_vertices
         out = torch.empty(B, V, 3, dtype=torch.float32)
         if B == 0:
             return out
         r = wp.from_torch(rot.detach().contiguous(), dtype=wp.mat33)
         h = wp.from_torch(heads.detach().contiguous(), dtype=wp.vec3)
-        wp.launch(_skin_nonzero, dim=(B, V), inputs=[r, h, *self._nz_wp], outputs=[wp.from_torch(out, dtype=wp.vec3)],
+        wp.launch(_skin_nonzero, dim=(B, V), inputs=[r, h, *self._nonzero_wp()], outputs=[wp.from_torch(out, dtype=wp.vec3)],
                   device="cpu")  # fmt: skip
         return out
+
+    def _nonzero_wp(self) -> tuple:
+        """The nonzero skinning weights as warp CPU arrays (made on first use): per vertex the range
+        ``ptr[v] .. ptr[v + 1] - 1`` of its ``bone``, ``u`` and ``w`` rows."""
+        if self._nz_wp is None:
+            self._nz_wp = (wp.array(self._nz_ptr.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
+                           wp.array(self._nz_bone.cpu().numpy().astype(np.int32), dtype=wp.int32, device="cpu"),
+                           wp.array(self._nz_u.cpu().numpy().astype(np.float32), dtype=wp.vec3, device="cpu"),
+                           wp.array(self._nz_w.cpu().numpy().astype(np.float32), dtype=wp.float32, device="cpu"))  # fmt: skip
+        return self._nz_wp
 
     def skin_at(self, posed: Posed, frames: torch.Tensor, vertex_ids: torch.Tensor) -> torch.Tensor:
         """Positions ``(M, 3)`` of vertices ``vertex_ids (M,)`` in frames ``frames (M,)`` (rows of
@@ -317,6 +331,12 @@ class BodyRig:
         one table (``index_select``, whose backward adds rows): a held collision pass's evaluation
         ~37 -> ~27 ms on the fit benchmark's hug (one profiled run, script outside the repo)."""
         vertex_ids, frames = vertex_ids.to(self.device), frames.to(self.device)
+        if posed.rot.dtype == torch.float32 and posed.rot.device.type == "cpu" and posed.heads.dtype == torch.float32:
+            return _SkinAt.apply(posed.rot, posed.heads, frames, vertex_ids, self._nonzero_wp())
+        return self._skin_at_torch(posed, frames, vertex_ids)
+
+    def _skin_at_torch(self, posed: Posed, frames: torch.Tensor, vertex_ids: torch.Tensor) -> torch.Tensor:
+        """:meth:`skin_at` in tensor operations, on any device and dtype."""
         first = self._nz_ptr[vertex_ids]
         n = self._nz_ptr[vertex_ids + 1] - first  # nonzero weights of each vertex
         which = torch.repeat_interleave(torch.arange(len(vertex_ids), device=self.device), n)  # (N,) pair -> point
@@ -367,6 +387,71 @@ def _skin_nonzero(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.ve
         j = bone[i]
         acc += w[i] * (rot[b, j] * u[i] + heads[b, j])
     out[b, v] = acc
+
+
+@wp.kernel
+def _skin_pairs(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.vec3), frames: wp.array(dtype=wp.int64),
+                verts: wp.array(dtype=wp.int64), ptr: wp.array(dtype=wp.int32), bone: wp.array(dtype=wp.int32),
+                u: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.vec3)):  # fmt: skip
+    """Point ``i``: vertex ``verts[i]`` of frame ``frames[i]`` skinned over its nonzero weights (:class:`_SkinAt`)."""
+    i = wp.tid()
+    b = int(frames[i])
+    v = int(verts[i])
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(ptr[v], ptr[v + 1]):
+        j = bone[k]
+        acc += w[k] * (rot[b, j] * u[k] + heads[b, j])
+    out[i] = acc
+
+
+@wp.kernel
+def _skin_pairs_grad(grad: wp.array(dtype=wp.vec3), frames: wp.array(dtype=wp.int64), verts: wp.array(dtype=wp.int64),
+                     ptr: wp.array(dtype=wp.int32), bone: wp.array(dtype=wp.int32), u: wp.array(dtype=wp.vec3),
+                     w: wp.array(dtype=wp.float32), grad_rot: wp.array2d(dtype=wp.mat33),
+                     grad_heads: wp.array2d(dtype=wp.vec3)):  # fmt: skip
+    """The gradient of :func:`_skin_pairs`: ``w g u^T`` into each read bone's rotation, ``w g`` into its head."""
+    i = wp.tid()
+    b = int(frames[i])
+    v = int(verts[i])
+    g = grad[i]
+    for k in range(ptr[v], ptr[v + 1]):
+        j = bone[k]
+        wp.atomic_add(grad_rot, b, j, w[k] * wp.outer(g, u[k]))
+        wp.atomic_add(grad_heads, b, j, w[k] * g)
+
+
+class _SkinAt(torch.autograd.Function):
+    """:meth:`BodyRig.skin_at` on the CPU in float32 as two warp kernels (forward and backward) instead of
+    ~10 tensor operations over every (point, weight) pair and their backward: a collision pass's
+    evaluation reads ~5,000-50,000 points, and the pairs' gathers and scatters were most of its cost
+    (50,000 points: 49 -> 3 ms forward and backward, 2-core x86 CPU; ``benchmarks/bench_fit_parts.py``).
+    A CPU launch runs its points in order, so the sums are the same from run to run."""
+
+    @staticmethod
+    def forward(ctx, rot, heads, frames, verts, nz):
+        rot, heads = rot.detach().contiguous(), heads.detach().contiguous()
+        frames, verts = frames.to(torch.int64).contiguous(), verts.to(torch.int64).contiguous()
+        out = torch.empty(len(verts), 3, dtype=torch.float32)
+        ctx.save_for_backward(frames, verts)
+        ctx.nz, ctx.shape = nz, rot.shape[:2]
+        if len(verts):
+            wp.launch(_skin_pairs, dim=len(verts), device="cpu",
+                      inputs=[wp.from_torch(rot, dtype=wp.mat33), wp.from_torch(heads, dtype=wp.vec3),
+                              wp.from_torch(frames), wp.from_torch(verts), *nz], outputs=[wp.from_torch(out, dtype=wp.vec3)])  # fmt: skip
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        frames, verts = ctx.saved_tensors
+        B, J = ctx.shape
+        grad_rot = torch.zeros(B, J, 3, 3, dtype=torch.float32)
+        grad_heads = torch.zeros(B, J, 3, dtype=torch.float32)
+        if len(verts):
+            wp.launch(_skin_pairs_grad, dim=len(verts), device="cpu",
+                      inputs=[wp.from_torch(grad.to(torch.float32).contiguous(), dtype=wp.vec3), wp.from_torch(frames),
+                              wp.from_torch(verts), *ctx.nz],
+                      outputs=[wp.from_torch(grad_rot, dtype=wp.mat33), wp.from_torch(grad_heads, dtype=wp.vec3)])  # fmt: skip
+        return grad_rot, grad_heads, None, None, None
 
 
 def sole_vertices(model, per_foot: int = 40) -> dict[str, np.ndarray]:
