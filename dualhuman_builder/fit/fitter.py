@@ -131,6 +131,9 @@ class FitConfig:
     #: (a script outside the repo) mostly did nothing where the hands' pass had not: the accuracy
     #: benchmark's twelve fits 85.4 -> 63.0 s with the span below, figures in the README)
     collision_rounds: int = 6
+    #: each collision pass's weight over the one before it. 8 instead of 4 on the fit benchmark's 0.5-minute
+    #: hug (one process, 2026-11-26, a script outside the repo): 1.07x the speed, MPJPE 2.82 -> 3.39 mm and
+    #: seams twice as jerky, so 4 stays
     collision_weight_step: float = 4.0
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
@@ -795,7 +798,7 @@ class _Fitter:
                     n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
                     for i_pass, what in enumerate(passes):
                         n_round += what == "all"
-                        weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # x4 per pass, the hands' pass included
+                        weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # x4 a pass, the hands' pass included
                         hit_t = torch.as_tensor(hit, device=dev)
                         start_left = best[2]  # the span's depths at the start of this pass (it starts from the best)
                         free = chands if what == "hands" else cbones + chands
