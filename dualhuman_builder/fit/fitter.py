@@ -133,7 +133,8 @@ class FitConfig:
     collision_rounds: int = 6
     #: each collision pass's weight over the one before it. 8 instead of 4 on the fit benchmark's 0.5-minute
     #: hug (one process, 2026-11-26, a script outside the repo): 1.07x the speed, MPJPE 2.82 -> 3.39 mm and
-    #: seams twice as jerky, so 4 stays
+    #: the joint error's second difference away from the seams 6.1 -> 14.3 mm/frame^2 (bench_fit's jitter),
+    #: so 4 stays
     collision_weight_step: float = 4.0
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
