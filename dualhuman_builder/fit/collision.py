@@ -231,36 +231,77 @@ def _safe_edges(
 
 
 @wp.kernel
-def _group_box_bound(
+def _moves(
+    a: wp.array2d(dtype=wp.vec3),
+    a0: wp.array2d(dtype=wp.vec3),
+    b: wp.array2d(dtype=wp.vec3),
+    b0: wp.array2d(dtype=wp.vec3),
+    obstacle: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.int32),
+    da: wp.array2d(dtype=wp.float32),
+    db: wp.array2d(dtype=wp.float32),
+    most: wp.array2d(dtype=wp.float32),
+):
+    """Frame ``i``, vertex ``v`` (:meth:`CollisionTerm._prior`): how far each body's vertex moved (``da``,
+    ``db``), and per frame the largest move of a's and b's obstacle vertices (``most[i, 0]``, ``[i, 1]``)
+    and of their vertices outside the move groups (``[i, 2]``, ``[i, 3]``). One thread: the maxima are
+    atomic only within a launch."""
+    i, v = wp.tid()
+    x = wp.length(a[i, v] - a0[i, v])
+    y = wp.length(b[i, v] - b0[i, v])
+    da[i, v] = x
+    db[i, v] = y
+    if obstacle[v] != 0:
+        wp.atomic_max(most, i, 0, x)
+        wp.atomic_max(most, i, 1, y)
+    if rest[v] != 0:
+        wp.atomic_max(most, i, 2, x)
+        wp.atomic_max(most, i, 3, y)
+
+
+@wp.kernel
+def _kept_signs(
     a: wp.array2d(dtype=wp.vec3),
     b: wp.array2d(dtype=wp.vec3),
     da: wp.array2d(dtype=wp.float32),
     db: wp.array2d(dtype=wp.float32),
+    most: wp.array2d(dtype=wp.float32),
     still: wp.array(dtype=wp.int32),
-    l0: wp.array2d(dtype=wp.float32),
     lo: wp.array2d(dtype=wp.vec3),
     hi: wp.array2d(dtype=wp.vec3),
+    s0: wp.array2d(dtype=wp.int8),
+    l0: wp.array2d(dtype=wp.float32),
+    rows: wp.array(dtype=wp.int32),
     start: wp.int32,
-    left: wp.array2d(dtype=wp.float32),
+    sgn: wp.array2d(dtype=wp.int8),
+    lb: wp.array2d(dtype=wp.float32),
 ):
-    """Problem ``r = 2 i + side`` (``tid + start``), vertex ``v`` (:meth:`CollisionTerm._group_bound`):
-    where ``still[r]``, ``left = max(left, min(l0, distance from the query vertex to the nearest of the
-    row's boxes lo..hi) - its move)``; the query vertex is b's (side 0) or a's (side 1) of frame ``i``."""
+    """Remembered problem ``r = 2 i + side`` (``tid + start``), vertex ``v`` (:meth:`CollisionTerm._prior`):
+    the query vertex (b's for side 0, a's for side 1) keeps its sign ``s0`` and a bound ``lb`` in row
+    ``rows[r]`` where its remembered bound ``l0``, less its own move and the obstacle's largest, stays
+    positive -- or, where ``still[r]`` (the obstacle moved only in its move groups), ``min(l0, distance to
+    the nearest of the row's boxes lo..hi)`` less its own move does (:meth:`CollisionTerm._group_boxes`)."""
     t, v = wp.tid()
     r = t + start
-    if still[r] == 0:
-        return
     i = r // 2
     p = b[i, v]
     dq = db[i, v]
+    mo = most[i, 0]
     if r - 2 * i == 1:
         p = a[i, v]
         dq = da[i, v]
-    near = float(1.0e30)
-    for g in range(lo.shape[1]):
-        c = wp.min(wp.max(p, lo[r, g]), hi[r, g])
-        near = wp.min(near, wp.length(p - c))
-    left[r, v] = wp.max(left[r, v], wp.min(l0[r, v], near) - dq)
+        mo = most[i, 1]
+    l = l0[r, v]
+    left = l - (dq + mo)
+    if still[r] != 0:
+        near = float(1.0e30)
+        for g in range(lo.shape[1]):
+            c = wp.min(wp.max(p, lo[r, g]), hi[r, g])
+            near = wp.min(near, wp.length(p - c))
+        left = wp.max(left, wp.min(l, near) - dq)
+    if left > 1.0e-6 + 1.0e-6 * l:  # float32 rounding of the stored bound
+        sgn[rows[r], v] = s0[r, v]
+        lb[rows[r], v] = left
 
 
 @dataclass
@@ -463,6 +504,7 @@ class CollisionTerm:
         # parts that may move alone (see _prior): per group k > 0 the corners of every obstacle face
         # touching one of its vertices (such a face moves with the group)
         self._move_groups: list[np.ndarray] = []
+        self._prior_masks: tuple | None = None  # (obstacle, outside the move groups) (V,) int32 warp arrays, for _moves
         if move_groups is not None:
             mg = np.asarray(move_groups)
             if mg.ndim != 1 or len(mg) < self.num_vertices_min or not np.issubdtype(mg.dtype, np.integer) or mg.min() < 0:
@@ -591,10 +633,10 @@ class CollisionTerm:
             diag = self._penetration_dict(*self._depth_maps(c, B, V, va.device, va.dtype), active)
         # the outward normal at each contact, as _assemble finds it for a vertex inside
         f, side = torch.as_tensor(c.frame), torch.as_tensor(c.side)
-        A, Bv = va.cpu().double(), vb.cpu().double()
+        A, Bv = va.cpu(), vb.cpu()  # read at the contacts only, then in float64
         tri = torch.as_tensor(self.obstacle_faces[c.face])
-        q = torch.where((side == 0)[:, None], Bv[f, torch.as_tensor(c.vert)], A[f, torch.as_tensor(c.vert)])
-        x = torch.where((side == 0)[:, None, None], A[f[:, None], tri], Bv[f[:, None], tri])
+        q = torch.where((side == 0)[:, None], Bv[f, torch.as_tensor(c.vert)], A[f, torch.as_tensor(c.vert)]).double()
+        x = torch.where((side == 0)[:, None, None], A[f[:, None], tri], Bv[f[:, None], tri]).double()
         diff = (torch.as_tensor(c.bary, dtype=torch.float64)[:, :, None] * x).sum(dim=1) - q
         normals = self._outward_normals(diff, x, inside=torch.as_tensor(np.asarray(c.depth) > 0)).numpy()
         return Linearised(contacts=c, normals=normals, guard=guard, B=B, V=V, max_depth_m=diag["max_depth_m"],
@@ -871,26 +913,43 @@ class CollisionTerm:
         have = [k for k, key in enumerate(fkeys) if key in self._memo and self._memo[key][0].shape == (V, 3)]
         if not have:
             return sgn, lb
+        n = len(have)
         entries = [self._memo[fkeys[k]] for k in have]
-        rows = np.ravel([[2 * k, 2 * k + 1] for k in have])
-        a0, b0 = (torch.from_numpy(np.stack([e[i] for e in entries])) for i in (0, 1))
+        rows = np.ravel([[2 * k, 2 * k + 1] for k in have]).astype(np.int32)
+        a0, b0 = (np.stack([e[i] for e in entries]) for i in (0, 1))
         s0 = np.concatenate([e[2] for e in entries])  # (2n, V), rows as in `rows`
-        l0 = torch.from_numpy(np.concatenate([e[3] for e in entries]))
-        ov = torch.from_numpy(self.obstacle_vertices)
-        da = torch.linalg.vector_norm(torch.from_numpy(A[have]) - a0, dim=2)  # (n, V) how far each vertex moved
-        db = torch.linalg.vector_norm(torch.from_numpy(Bv[have]) - b0, dim=2)
-        # side 0: b's vertices against a's surface; side 1: a's against b's
-        move = torch.stack([db + da[:, ov].amax(dim=1, keepdim=True), da + db[:, ov].amax(dim=1, keepdim=True)], 1)
-        left = l0 - move.reshape(-1, V)
-        if self._move_groups:
-            left = self._group_bound(left, l0, have, A, Bv, a0, b0, da, db)
-        left = left.numpy()
-        keep = left > 1e-6 + 1e-6 * l0.numpy()  # float32 rounding of the stored bound
-        sgn[rows] = np.where(keep, s0, 0)
-        lb[rows] = np.where(keep, left, 0.0)
+        l0 = np.concatenate([e[3] for e in entries])
+        A_now = A if n == len(A) else np.ascontiguousarray(A[have])
+        B_now = Bv if n == len(Bv) else np.ascontiguousarray(Bv[have])
+        if self._prior_masks is None or len(self._prior_masks[0]) != V:
+            obstacle = np.zeros(V, np.int32)
+            obstacle[self.obstacle_vertices] = 1
+            rest = (self._move_group_of[:V] == 0).astype(np.int32) if self._move_groups else np.zeros(V, np.int32)
+            self._prior_masks = (wp.array(obstacle, dtype=wp.int32, device="cpu"), wp.array(rest, dtype=wp.int32, device="cpu"))
+        da, db = np.empty((n, V), np.float32), np.empty((n, V), np.float32)
+        most = np.zeros((n, 4), np.float32)
+        def wrap(x, dtype=None):  # numpy memory as a warp array, no copy (the kernels write into da, db, most, sgn, lb)
+            dtype = dtype or {np.float32: wp.float32, np.int32: wp.int32, np.int8: wp.int8}[x.dtype.type]
+            return wp.array(x, dtype=dtype, device="cpu", copy=False)
+
+        wp.launch(_moves, dim=(n, V), device="cpu", inputs=[*(wrap(x, wp.vec3) for x in (A_now, a0, B_now, b0)), *self._prior_masks],
+                  outputs=[wrap(x) for x in (da, db, most)])  # fmt: skip
+        lo, hi, still = self._group_boxes(most, a0, b0, A_now, B_now)
+        arrs = [wrap(A_now, wp.vec3), wrap(B_now, wp.vec3), *(wrap(x) for x in (da, db, most, still)), wrap(lo, wp.vec3),
+                wrap(hi, wp.vec3), wrap(s0), wrap(l0), wrap(rows)]  # fmt: skip
+        outs = [wrap(sgn), wrap(lb)]
+
+        def run(r):
+            wp.launch(_kept_signs, dim=(len(r), V), inputs=[*arrs, int(r[0])], outputs=outs, device="cpu")
+
+        if _kept_signs.key not in _loaded:  # load the module once, before any concurrent launch
+            run(np.arange(1))
+            _loaded.add(_kept_signs.key)
+        self._threaded(run, np.arange(2 * n), 8)
+        wp.synchronize_device("cpu")
         return sgn, lb
 
-    def _group_bound(self, left, l0, have, A, Bv, a0, b0, da, db):
+    def _group_boxes(self, most, a0, b0, A_now, B_now) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A finer :meth:`_prior` bound where only ``move_groups`` parts of an obstacle moved (the hands'
         collision pass opens the fingers and moves nothing else, by centimetres: the plain bound,
         which takes the obstacle's largest move, then keeps no sign anywhere).
@@ -899,36 +958,24 @@ class CollisionTerm:
         and all between, in the box of its group's face corners old and new -- or moved not at
         all. So a query vertex ``q`` that moved by ``|dq|`` is still farther than ``min(lb - |dq|,
         min_g dist(q, box_g) - |dq|)`` from the obstacle, all the way along the move: where that is
-        positive its sign holds. ``left (2n, V)``: the plain bound, raised where this one is larger
-        (problems whose obstacle moved outside the groups keep it)."""
-        n, V = len(have), left.shape[1]
-        rest = torch.from_numpy(self._move_group_of[:V] == 0)
-        still = torch.stack([da[:, rest].amax(dim=1) == 0, db[:, rest].amax(dim=1) == 0], 1).reshape(-1)  # (2n,) row 2i + side
-        if not bool(still.any()):
-            return left
-        A_now, B_now = torch.from_numpy(A if n == len(A) else A[have]), torch.from_numpy(Bv if n == len(Bv) else Bv[have])
-        G = len(self._move_groups)
-        lo, hi = torch.empty(n, 2, G, 3), torch.empty(n, 2, G, 3)  # per frame, side (obstacle a, b) and group
-        for g, corners in enumerate(self._move_groups):
-            c = torch.from_numpy(corners)
+        positive its sign holds (:func:`_kept_signs`).
+
+        ``most (n, 4)`` from :func:`_moves`. Returns the boxes ``lo``, ``hi`` ``(2n, G, 3)`` of each
+        problem's obstacle (row ``2 i + side`` as in :meth:`_contacts`) and ``still (2n,)`` int32: 1
+        where that obstacle moved in its groups only (``G = 0`` and no row still without groups, or
+        when every obstacle moved elsewhere too)."""
+        n = len(most)
+        still = np.zeros(2 * n, np.int32)
+        if self._move_groups:
+            still[0::2], still[1::2] = most[:, 2] == 0, most[:, 3] == 0
+        G = len(self._move_groups) if still.any() else 0
+        lo, hi = np.zeros((n, 2, G, 3), np.float32), np.zeros((n, 2, G, 3), np.float32)  # G = 0: never read
+        for g, corners in enumerate(self._move_groups[:G]):
             for side, (old, new) in enumerate(((a0, A_now), (b0, B_now))):
-                o, w = old[:, c], new[:, c]
-                lo[:, side, g] = torch.minimum(o.amin(dim=1), w.amin(dim=1))
-                hi[:, side, g] = torch.maximum(o.amax(dim=1), w.amax(dim=1))
-        arrs = [wp.from_torch(A_now, dtype=wp.vec3), wp.from_torch(B_now, dtype=wp.vec3), wp.from_torch(da), wp.from_torch(db),
-                wp.from_torch(still.to(torch.int32)), wp.from_torch(l0), wp.from_torch(lo.reshape(2 * n, G, 3), dtype=wp.vec3),
-                wp.from_torch(hi.reshape(2 * n, G, 3), dtype=wp.vec3)]  # fmt: skip
-        out = wp.from_torch(left)
-
-        def run(rows):
-            wp.launch(_group_box_bound, dim=(len(rows), V), inputs=[*arrs, int(rows[0])], outputs=[out], device="cpu")
-
-        if _group_box_bound.key not in _loaded:  # load the module once, before any concurrent launch
-            run(np.arange(1))
-            _loaded.add(_group_box_bound.key)
-        self._threaded(run, np.arange(2 * n), 8)
-        wp.synchronize_device("cpu")
-        return left
+                o, w = old[:, corners], new[:, corners]
+                lo[:, side, g] = np.minimum(o.min(axis=1), w.min(axis=1))
+                hi[:, side, g] = np.maximum(o.max(axis=1), w.max(axis=1))
+        return lo.reshape(2 * n, G, 3), hi.reshape(2 * n, G, 3), still
 
     def _remember(self, fkeys: list, A: np.ndarray, Bv: np.ndarray, sgn: np.ndarray, lb: np.ndarray) -> None:
         for k, key in enumerate(fkeys):

@@ -772,8 +772,10 @@ class _Fitter:
                 cbones = [p for k in range(len(acts)) for p in cparams[P * k : P * k + 2]]
                 chands = [cparams[P * k + 2] for k in range(len(acts))] if cfg.hand_opening else []
                 # (the deepest frame's depth, the corrections, the per-frame depths and penetrating shares (c1 - c0,)
-                # each) after the skeleton pass; `best` below: the same after the best round so far
-                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"], pen["share"])
+                # each, and the contacts located there or None) after the skeleton pass; `best` below: the same after
+                # the best round so far (a round undone goes back to it without locating its contacts again)
+                start = (float(pen["max_depth_m"].max()), [p.detach().clone() for p in cparams], pen["max_depth_m"], pen["share"],
+                         located)  # fmt: skip
                 # the hands first: their openings have no data term, so they give way before any bone the
                 # suit and trackers hold, and the full rounds start from hands that already fit
                 passes = (["hands"] if chands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
@@ -795,7 +797,7 @@ class _Fitter:
                         exact = np.union1d(exact, np.flatnonzero(held_best[2] > cfg.collision_tolerance_m))
                         _restore(cparams, start[1])
                         out.exact_windows.append(f"frames {c0}-{c1 - 1}")
-                        located = None
+                        located = start[4]
                     n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
                     for i_pass, what in enumerate(passes):
                         n_round += what == "all"
@@ -889,10 +891,10 @@ class _Fitter:
                             # than the term can hold them apart, and L-BFGS stepped into a worse basin): undo it;
                             # the next round starts again from the best answer, with the term weighted up
                             _restore(cparams, best[1])
-                            located = None
+                            located = best[4]
                             out.worsened.append(f"{label}: {1000 * left.max():.1f} mm after, {1000 * best[0]:.1f} mm before")
                         else:
-                            best = (float(left.max()), [p.detach().clone() for p in cparams], left, now_pen["share"])
+                            best = (float(left.max()), [p.detach().clone() for p in cparams], left, now_pen["share"], located)
                             if left.max() <= cfg.collision_tolerance_m and now_pen["share"].max() <= cfg.collision_share_tolerance:
                                 settled = True
                                 break
