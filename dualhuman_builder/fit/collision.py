@@ -93,7 +93,14 @@ Reuse across calls (``keys``)
     keyed call had it outside. On a 90-frame hug fit the term's time fell from 87 s to 33 s
     (queries 20.7 s -> 2.7 s; the rest is per-vertex bookkeeping in numpy and mesh refits).
     Stale entries are only less useful, never wrong; ``max_memo`` bounds them (oldest dropped),
-    ``clear_memo()`` frees them.
+    ``clear_memo()`` frees them. With ``move_groups`` (``(V,)`` ints, the fitter's: the fingers of
+    each hand) a frame whose obstacle moved only in those groups (the fitter's hands' pass opens the
+    fingers and moves nothing else) keeps the signs of the vertices away from them: the faces that
+    moved lie in their group's box (old and new corners), the others did not move, so the bound is
+    ``min(lb, distance to the nearest moved box) - |dq|`` (:meth:`CollisionTerm._group_boxes`). On the
+    fit benchmark's hug the check after the hands' pass reused 1.20 of 1.23 million candidates' signs
+    instead of 0.65 million, the flood fill's vertices 500,000 -> 3,200 (same answers; 2026-11-26).
+    The bound is computed by two warp kernels (:func:`_moves`, :func:`_kept_signs`).
 
 Held contacts (:meth:`CollisionTerm.linearise`, :meth:`CollisionTerm.linear_loss`)
     Locate the contacts once (plus the vertices outside within a margin) and evaluate the term many

@@ -22,7 +22,10 @@ each hand's thumb and fingers (:mod:`dualhuman_builder.body.hands`; 0 anny's rel
 kept within [-0.5, 1]). The suit measures no fingers, so only the collision term moves them: a palm
 resting on the partner opens flat instead of leaving the relaxed thumb and fingertips inside them
 (the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). Each
-window's collision passes start with one over the openings alone, then the full rounds.
+window's collision passes start with one over the openings alone, then the full rounds. That pass
+reads only what the openings change: the located contacts touching a finger
+(:meth:`~dualhuman_builder.fit.collision.CollisionTerm.moving_only`) and the openings' own terms
+(:func:`_opening_energy`), the bones held as constants (no gradient into them).
 
 The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
 rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a
