@@ -969,8 +969,8 @@ class CollisionTerm:
 
         ``most (n, 4)`` from :func:`_moves`. Returns the boxes ``lo``, ``hi`` ``(2n, G, 3)`` of each
         problem's obstacle (row ``2 i + side`` as in :meth:`_contacts`) and ``still (2n,)`` int32: 1
-        where that obstacle moved in its groups only (``G = 0`` and no row still without groups, or
-        when every obstacle moved elsewhere too)."""
+        where that obstacle moved in its groups only. ``G`` is 0 (no box is read) without move groups
+        and when no obstacle moved in its groups only."""
         n = len(most)
         still = np.zeros(2 * n, np.int32)
         if self._move_groups:
