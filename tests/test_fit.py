@@ -63,6 +63,8 @@ def test_body_rig_is_anny_exactly(model):
     fused = rig.skin_at(rig.pose(A, transl, False, opening), f2, v2)
     assert type(fused.grad_fn).__name__ == "_SkinAtBackward"
     gf = torch.autograd.grad((fused * w2).sum(), (A, opening))
+    again = torch.autograd.grad((rig.skin_at(rig.pose(A, transl, False, opening), f2, v2) * w2).sum(), (A, opening))
+    assert all(torch.equal(x, y) for x, y in zip(gf, again))  # the kernels' sums repeat exactly
     plain = rig._skin_at_torch(rig.pose(A, transl, False, opening), f2, v2)
     gt = torch.autograd.grad((plain * w2).sum(), (A, opening))
     assert (fused - plain).abs().max() < 1e-6

@@ -251,8 +251,8 @@ def _moves(
 ):
     """Frame ``i``, vertex ``v`` (:meth:`CollisionTerm._prior`): how far each body's vertex moved (``da``,
     ``db``), and per frame the largest move of a's and b's obstacle vertices (``most[i, 0]``, ``[i, 1]``)
-    and of their vertices outside the move groups (``[i, 2]``, ``[i, 3]``). One thread: the maxima are
-    atomic only within a launch."""
+    and of their vertices outside the move groups (``[i, 2]``, ``[i, 3]``). Launched once, not split
+    over threads (:meth:`CollisionTerm._launch_threaded`): the maxima are read-modify-writes."""
     i, v = wp.tid()
     x = wp.length(a[i, v] - a0[i, v])
     y = wp.length(b[i, v] - b0[i, v])
@@ -802,6 +802,19 @@ class CollisionTerm:
         for fut in futures:
             fut.result()
 
+    def _launch_threaded(self, kernel, n: int, min_chunk: int, launch) -> None:
+        """``launch(start, count)`` -- one warp CPU launch of ``kernel`` over items ``start .. start +
+        count - 1`` -- over ``n`` items in threads (:meth:`_threaded`). warp loads a kernel's module on
+        its first launch, which two threads must not do at once: the first launch ever is one item,
+        alone (its result is written again by the threaded launches)."""
+        if n == 0:
+            return
+        if kernel.key not in _loaded:
+            launch(0, 1)
+            _loaded.add(kernel.key)
+        self._threaded(lambda items: launch(int(items[0]), len(items)), np.arange(n), min_chunk)
+        wp.synchronize_device("cpu")
+
     def _query(self, mesh_ids: np.ndarray, which: np.ndarray, points: np.ndarray, max_dist) -> tuple:
         """Closest points of ``points (N, 3)`` on meshes ``mesh_ids[which]`` within ``max_dist``.
 
@@ -822,16 +835,8 @@ class CollisionTerm:
         sd = wp.zeros(N, dtype=wp.float32, device="cpu")
         face = wp.zeros(N, dtype=wp.int32, device="cpu")
         bary = wp.zeros(N, dtype=wp.vec3, device="cpu")
-        if _closest.key not in _loaded:  # load the module once, before any concurrent launch
-            wp.launch(_closest, dim=1, inputs=[*arrs, 0, winding, sd, face, bary], device="cpu")
-            _loaded.add(_closest.key)
-
-        def run(rows):
-            s, e = int(rows[0]), int(rows[-1]) + 1
-            wp.launch(_closest, dim=e - s, inputs=[*arrs, s, winding, sd, face, bary], device="cpu")
-
-        self._threaded(run, np.arange(N), _MIN_CHUNK)
-        wp.synchronize_device("cpu")
+        self._launch_threaded(_closest, N, _MIN_CHUNK, lambda s, k: wp.launch(
+            _closest, dim=k, inputs=[*arrs, s, winding, sd, face, bary], device="cpu"))  # fmt: skip
         return sd.numpy().copy(), face.numpy().copy(), bary.numpy().copy()
 
     def _safe_edges(self, points: np.ndarray, bound: np.ndarray, unknown: np.ndarray, rows: np.ndarray,
@@ -857,16 +862,8 @@ class CollisionTerm:
             *self._edges_wp,
         ]
         safe = wp.zeros(n, dtype=wp.int32, device="cpu")
-        if _safe_edges.key not in _loaded:  # load the module once, before any concurrent launch
-            wp.launch(_safe_edges, dim=1, inputs=[*arrs, V, 0, safe], device="cpu")
-            _loaded.add(_safe_edges.key)
-
-        def run(items):
-            s, e = int(items[0]), int(items[-1]) + 1
-            wp.launch(_safe_edges, dim=e - s, inputs=[*arrs, V, s, safe], device="cpu")
-
-        self._threaded(run, np.arange(n), _MIN_CHUNK)
-        wp.synchronize_device("cpu")
+        self._launch_threaded(_safe_edges, n, _MIN_CHUNK, lambda s, k: wp.launch(
+            _safe_edges, dim=k, inputs=[*arrs, V, s, safe], device="cpu"))  # fmt: skip
         hit = np.flatnonzero(safe.numpy())
         return rows[hit // E], hit % E
 
@@ -935,6 +932,7 @@ class CollisionTerm:
             self._prior_masks = (wp.array(obstacle, dtype=wp.int32, device="cpu"), wp.array(rest, dtype=wp.int32, device="cpu"))
         da, db = np.empty((n, V), np.float32), np.empty((n, V), np.float32)
         most = np.zeros((n, 4), np.float32)
+
         def wrap(x, dtype=None):  # numpy memory as a warp array, no copy (the kernels write into da, db, most, sgn, lb)
             dtype = dtype or {np.float32: wp.float32, np.int32: wp.int32, np.int8: wp.int8}[x.dtype.type]
             return wp.array(x, dtype=dtype, device="cpu", copy=False)
@@ -945,15 +943,8 @@ class CollisionTerm:
         arrs = [wrap(A_now, wp.vec3), wrap(B_now, wp.vec3), *(wrap(x) for x in (da, db, most, still)), wrap(lo, wp.vec3),
                 wrap(hi, wp.vec3), wrap(s0), wrap(l0), wrap(rows)]  # fmt: skip
         outs = [wrap(sgn), wrap(lb)]
-
-        def run(r):
-            wp.launch(_kept_signs, dim=(len(r), V), inputs=[*arrs, int(r[0])], outputs=outs, device="cpu")
-
-        if _kept_signs.key not in _loaded:  # load the module once, before any concurrent launch
-            run(np.arange(1))
-            _loaded.add(_kept_signs.key)
-        self._threaded(run, np.arange(2 * n), 8)
-        wp.synchronize_device("cpu")
+        self._launch_threaded(_kept_signs, 2 * n, 8, lambda s, k: wp.launch(
+            _kept_signs, dim=(k, V), inputs=[*arrs, s], outputs=outs, device="cpu"))  # fmt: skip
         return sgn, lb
 
     def _group_boxes(self, most, a0, b0, A_now, B_now) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

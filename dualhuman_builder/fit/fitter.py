@@ -804,7 +804,7 @@ class _Fitter:
                     n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
                     for i_pass, what in enumerate(passes):
                         n_round += what == "all"
-                        weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # x4 a pass, the hands' pass included
+                        weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # the hands' pass included
                         hit_t = torch.as_tensor(hit, device=dev)
                         start_left = best[2]  # the span's depths at the start of this pass (it starts from the best)
                         free = chands if what == "hands" else cbones + chands
@@ -820,14 +820,15 @@ class _Fitter:
                             if located is None:
                                 _, located = check(cparams, csl)
                             held = located.subset(hit[rows_h])
-                            if what == "hands":  # only the fingers move: the other contacts' depths are constants
-                                held = collide.moving_only(held, self.fingers)
                         # the hands' pass moves the openings alone: the bones' rotations and positions are constants
-                        # there (no gradient, no skeleton terms but the openings', _opening_energy)
+                        # there (no gradient, no skeleton terms but the openings', _opening_energy), and so are the
+                        # depths of the held contacts that touch no finger
                         fixed = None
                         if what == "hands":
                             with torch.no_grad():
                                 fixed = self.stack.rotations(torch.stack(cparams[0::P]), csl).unbind(0)
+                            if held is not None:
+                                held = collide.moving_only(held, self.fingers)
 
                         def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
                                      rows_x=rows_x, fixed=fixed):  # fmt: skip

@@ -292,7 +292,7 @@ class BodyRig:
     def _sparse_ok(self, rot: torch.Tensor, heads: torch.Tensor) -> bool:
         """Whether :meth:`_skin_sparse` can skin these bones: float32 on the CPU, no gradient wanted."""
         grad = torch.is_grad_enabled() and (rot.requires_grad or heads.requires_grad)
-        return not grad and rot.dtype == torch.float32 and rot.device.type == "cpu" and self._u_all.shape[0] > 0
+        return not grad and _warp_cpu(rot, heads) and self._u_all.shape[0] > 0
 
     def _skin_sparse(self, rot: torch.Tensor, heads: torch.Tensor) -> torch.Tensor:
         """Every vertex ``(B, V, 3)`` for bone rotations ``rot (B, J, 3, 3)`` and heads ``heads (B, J,
@@ -327,16 +327,17 @@ class BodyRig:
         ``posed``), differentiable through ``posed.rot`` and ``posed.heads``: the same linear blend
         skinning as :meth:`pose`, for scattered (frame, vertex) pairs only. The collision term needs
         a gradient at a few thousand such pairs, not at every vertex of every frame. Only each
-        vertex's nonzero weights are read (2.5 of anny's 9 slots on average), the bones as rows of
-        one table (``index_select``, whose backward adds rows): a held collision pass's evaluation
-        ~37 -> ~27 ms on the fit benchmark's hug (one profiled run, script outside the repo)."""
+        vertex's nonzero weights are read (2.5 of anny's 9 slots on average). On the CPU in float32
+        two warp kernels do it (:class:`_SkinAt`), elsewhere tensor operations (:meth:`_skin_at_torch`)."""
         vertex_ids, frames = vertex_ids.to(self.device), frames.to(self.device)
-        if posed.rot.dtype == torch.float32 and posed.rot.device.type == "cpu" and posed.heads.dtype == torch.float32:
+        if _warp_cpu(posed.rot, posed.heads):
             return _SkinAt.apply(posed.rot, posed.heads, frames, vertex_ids, self._nonzero_wp())
         return self._skin_at_torch(posed, frames, vertex_ids)
 
     def _skin_at_torch(self, posed: Posed, frames: torch.Tensor, vertex_ids: torch.Tensor) -> torch.Tensor:
-        """:meth:`skin_at` in tensor operations, on any device and dtype."""
+        """:meth:`skin_at` in tensor operations, on any device and dtype: the bones as rows of one table
+        (``index_select``, whose backward adds rows; a held collision pass's evaluation ~37 -> ~27 ms
+        against a 4-D gather on the fit benchmark's hug, one profiled run, script outside the repo)."""
         first = self._nz_ptr[vertex_ids]
         n = self._nz_ptr[vertex_ids + 1] - first  # nonzero weights of each vertex
         which = torch.repeat_interleave(torch.arange(len(vertex_ids), device=self.device), n)  # (N,) pair -> point
@@ -375,33 +376,39 @@ def linear_pose(seg_rot: torch.Tensor, transl: torch.Tensor, mat: torch.Tensor, 
     return out + wsum[..., :, None] * transl[..., None, :]
 
 
-@wp.kernel
-def _skin_nonzero(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.vec3), ptr: wp.array(dtype=wp.int32),
-                  bone: wp.array(dtype=wp.int32), u: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32),
-                  out: wp.array2d(dtype=wp.vec3)):  # fmt: skip
+def _warp_cpu(rot: torch.Tensor, heads: torch.Tensor) -> bool:
+    """Whether the warp CPU kernels below can read these bones: float32 tensors on the CPU."""
+    return rot.dtype == heads.dtype == torch.float32 and rot.device.type == "cpu"
+
+
+@wp.func
+def _blend(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.vec3), b: int, v: int, ptr: wp.array(dtype=wp.int32),
+           bone: wp.array(dtype=wp.int32), u: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32)):  # fmt: skip
     """Vertex ``v`` of frame ``b``: ``sum_i w_i (rot[b, bone_i] u_i + heads[b, bone_i])`` over its nonzero
-    weights ``i`` in ``ptr[v] .. ptr[v + 1] - 1`` (:meth:`BodyRig._skin_sparse`)."""
-    b, v = wp.tid()
+    weights ``i`` in ``ptr[v] .. ptr[v + 1] - 1``."""
     acc = wp.vec3(0.0, 0.0, 0.0)
     for i in range(ptr[v], ptr[v + 1]):
         j = bone[i]
         acc += w[i] * (rot[b, j] * u[i] + heads[b, j])
-    out[b, v] = acc
+    return acc
+
+
+@wp.kernel
+def _skin_nonzero(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.vec3), ptr: wp.array(dtype=wp.int32),
+                  bone: wp.array(dtype=wp.int32), u: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32),
+                  out: wp.array2d(dtype=wp.vec3)):  # fmt: skip
+    """Every vertex ``v`` of every frame ``b`` (:meth:`BodyRig._skin_sparse`)."""
+    b, v = wp.tid()
+    out[b, v] = _blend(rot, heads, b, v, ptr, bone, u, w)
 
 
 @wp.kernel
 def _skin_pairs(rot: wp.array2d(dtype=wp.mat33), heads: wp.array2d(dtype=wp.vec3), frames: wp.array(dtype=wp.int64),
                 verts: wp.array(dtype=wp.int64), ptr: wp.array(dtype=wp.int32), bone: wp.array(dtype=wp.int32),
                 u: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.vec3)):  # fmt: skip
-    """Point ``i``: vertex ``verts[i]`` of frame ``frames[i]`` skinned over its nonzero weights (:class:`_SkinAt`)."""
+    """Point ``i``: vertex ``verts[i]`` of frame ``frames[i]`` (:class:`_SkinAt`)."""
     i = wp.tid()
-    b = int(frames[i])
-    v = int(verts[i])
-    acc = wp.vec3(0.0, 0.0, 0.0)
-    for k in range(ptr[v], ptr[v + 1]):
-        j = bone[k]
-        acc += w[k] * (rot[b, j] * u[k] + heads[b, j])
-    out[i] = acc
+    out[i] = _blend(rot, heads, int(frames[i]), int(verts[i]), ptr, bone, u, w)
 
 
 @wp.kernel
@@ -426,7 +433,8 @@ class _SkinAt(torch.autograd.Function):
     evaluation reads ~5,000-50,000 points, and the pairs' gathers and scatters were most of its cost
     (``benchmarks/bench_skin_at.py``, 30 frames with the bones' posing, forward and backward: 50,000
     points 26.1 -> 7.7 ms, 5,000 points 5.3 -> 4.1 ms; 2026-11-26, 2-core x86 CPU).
-    A CPU launch runs its points in order, so the sums are the same from run to run."""
+    A CPU launch runs its points in order, so the gradient's sums are the same from run to run (the rig
+    test backs both)."""
 
     @staticmethod
     def forward(ctx, rot, heads, frames, verts, nz):
