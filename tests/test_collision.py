@@ -445,32 +445,47 @@ def test_bad_input(ct, bodies):
         CollisionTerm(bodies["faces"], band_m=0.0)
 
 
-def test_safe_edges_are_those_an_unknown_sign_may_cross(bodies):
-    """The flood fill's edges (warp kernel) against the rule in numpy: an end of unknown sign, and the
-    ends' distance bounds adding up to more than the edge (a margin for float32 rounding)."""
+def test_flood_fill_components_are_those_of_the_edges_an_unknown_sign_cannot_cross(bodies):
+    """The flood fill's union-find (warp kernels) against scipy's connected components over the
+    edges the rule allows: an end of unknown sign, and the ends' distance bounds adding up to more
+    than the edge (a margin for float32 rounding). Per vertex of unknown sign: its component's known
+    sign, a conflict (members known on both sides), or, without a known member, the component's
+    first vertex (its representative) and the others pointing at it."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     ct = CollisionTerm(bodies["faces"])
     V = bodies["a"].shape[1]
     P = 3
     rng = np.random.default_rng(5)
-    pts = (bodies["a"][0].numpy()[None] + rng.normal(0, 0.002, (P, V, 3))).astype(np.float32).reshape(-1, 3)
-    bound = rng.uniform(0.0, 0.02, P * V).astype(np.float32)
-    unknown = rng.random(P * V) < 0.3
+    pts = (bodies["a"][0].numpy()[None] + rng.normal(0, 0.002, (P, V, 3))).astype(np.float32)
+    bound = rng.uniform(0.0, 0.02, (P, V)).astype(np.float32)
+    sgn = rng.choice(np.array([-1, 0, 1], np.int8), size=(P, V), p=[0.1, 0.6, 0.3])
     rows = np.array([0, 2])  # problem 1 has nothing to fill
-    pp, ee = ct._safe_edges(pts, bound, unknown, rows, V)
+    code = ct._flood(pts, bound, sgn, rows)
+    assert code.shape == (2, V)
     e0, e1 = ct.edges[:, 0], ct.edges[:, 1]
-    want = set()
-    for p in rows:
-        u, w = p * V + e0, p * V + e1
-        length = np.linalg.norm(pts[u] - pts[w], axis=1)
-        ok = (unknown[u] | unknown[w]) & (bound[u] + bound[w] > length * (1 + 1e-4) + 1e-6)
-        # float32 rounding may decide an edge within 1e-6 relative of the limit either way
-        close = np.abs(bound[u] + bound[w] - (length * (1 + 1e-4) + 1e-6)) < 1e-6 * (bound[u] + bound[w])
-        want |= {(int(p), int(k)) for k in np.flatnonzero(ok & ~close)}
-        got_here = {(int(q), int(k)) for q, k in zip(pp, ee) if q == p}
-        assert {(int(p), int(k)) for k in np.flatnonzero(ok & ~close)} <= got_here
-        assert got_here <= {(int(p), int(k)) for k in np.flatnonzero(ok | close)}
-    assert 1 not in set(pp.tolist()) and len(want) > 1000
-
+    counts = np.zeros(4, int)
+    for t, p in enumerate(rows):
+        length = np.linalg.norm(pts[p, e0].astype(np.float64) - pts[p, e1], axis=1)
+        total = bound[p, e0].astype(np.float64) + bound[p, e1]
+        limit = length * (1 + 1e-4) + 1e-6
+        assert not (np.abs(total - limit) < 1e-6 * total).any()  # no edge that float32 rounding could decide
+        ok = ((sgn[p, e0] == 0) | (sgn[p, e1] == 0)) & (total > limit)
+        _, comp = connected_components(coo_matrix((np.ones(ok.sum()), (e0[ok], e1[ok])), shape=(V, V)), directed=False)
+        pos = np.zeros(V, bool)
+        neg = np.zeros(V, bool)
+        pos[comp[sgn[p] > 0]] = True
+        neg[comp[sgn[p] < 0]] = True
+        first = np.full(V, -1)
+        for v in range(V):
+            if first[comp[v]] < 0:
+                first[comp[v]] = v
+        c = comp
+        want = np.select([sgn[p] != 0, pos[c] & neg[c], pos[c], neg[c], first[c] == np.arange(V)], [0, 2, 1, -1, 3], -(4 + first[c]))
+        np.testing.assert_array_equal(code[t], want)
+        counts += [(want == k).sum() for k in (1, -1, 2, 3)]
+    assert (counts > 50).all(), counts  # every kind of answer occurs
 
 
 def _finger_groups(body_model) -> np.ndarray:

@@ -73,8 +73,8 @@ Method ``"warp"`` (default): exact depths, banded query and sign flood fill
     it took whichever sign came last (on the fit benchmark's hug one frame read 18.8 mm deep where
     the winding number says 20.8; on a noise-posed pair 437 vertices were on the wrong side, 138
     now). Fewer far vertices get a full query each. (3) Far vertices found inside get a full
-    query for their depth. Queries, and the test of which edges are safe (:meth:`CollisionTerm._safe_edges`),
-    run in warp CPU kernels split over ``threads`` threads.
+    query for their depth. Queries, and the flood fill's components (a union-find forest per
+    problem, :meth:`CollisionTerm._flood`), run in warp CPU kernels split over ``threads`` threads.
 
 Reuse across calls (``keys``)
     An optimiser evaluates the term many times on bodies that barely move. When the caller names
@@ -207,34 +207,96 @@ def _closest(
         bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
 
 
+@wp.func
+def _root(parent: wp.array2d(dtype=wp.int32), t: int, v: int) -> int:
+    """The root of vertex ``v``'s tree in row ``t`` of the union-find forest ``parent``, halving
+    the path on the way (each vertex visited then points to its grandparent)."""
+    x = int(v)
+    while parent[t, x] != x:
+        g = parent[t, parent[t, x]]
+        parent[t, x] = g
+        x = g
+    return x
+
+
 @wp.kernel
-def _safe_edges(
-    points: wp.array(dtype=wp.vec3),
-    bound: wp.array(dtype=wp.float32),
-    unknown: wp.array(dtype=wp.int32),
+def _flood_union(
+    points: wp.array2d(dtype=wp.vec3),
+    bound: wp.array2d(dtype=wp.float32),
+    sgn: wp.array2d(dtype=wp.int8),
     rows: wp.array(dtype=wp.int32),
     e0: wp.array(dtype=wp.int32),
     e1: wp.array(dtype=wp.int32),
-    n_vertices: wp.int32,
     start: wp.int32,
-    safe: wp.array(dtype=wp.int32),
+    parent: wp.array2d(dtype=wp.int32),
 ):
-    """Edge ``k`` of problem ``rows[r]`` (``tid + start = r n_edges + k``) is 1 in ``safe`` when one
-    end's sign is unknown and the edge cannot cross the obstacle: its ends' distance bounds add up
-    to more than its length (with a margin for float32 rounding); 0 otherwise. ``points``,
-    ``bound`` and ``unknown`` are flat over ``(problem, vertex)``."""
-    i = wp.tid() + start
-    n_e = e0.shape[0]
-    r = i // n_e
-    k = i - r * n_e
-    base = rows[r] * n_vertices
-    a = base + e0[k]
-    b = base + e1[k]
-    ok = int(0)
-    if unknown[a] != 0 or unknown[b] != 0:
-        if bound[a] + bound[b] > wp.length(points[a] - points[b]) * (1.0 + 1.0e-4) + 1.0e-6:
-            ok = 1
-    safe[i] = ok
+    """Problem ``rows[t]`` (``t = tid + start``): the connected components, as a union-find forest in
+    ``parent[t]`` (vertex indices), of the query mesh's edges the sign flood fill may follow: those
+    with an end of unknown sign (``sgn`` 0) whose ends' distance bounds add up to more than the edge
+    (a margin for float32 rounding), so that it cannot cross the obstacle. A thread owns whole
+    problems, so threads never write the same row."""
+    t = wp.tid() + start
+    r = rows[t]
+    for v in range(points.shape[1]):
+        parent[t, v] = v
+    for k in range(e0.shape[0]):
+        a = e0[k]
+        b = e1[k]
+        if sgn[r, a] == wp.int8(0) or sgn[r, b] == wp.int8(0):
+            if bound[r, a] + bound[r, b] > wp.length(points[r, a] - points[r, b]) * (1.0 + 1.0e-4) + 1.0e-6:
+                x = _root(parent, t, a)
+                y = _root(parent, t, b)
+                if x < y:
+                    parent[t, y] = x
+                elif y < x:
+                    parent[t, x] = y
+
+
+@wp.kernel
+def _flood_signs(
+    sgn: wp.array2d(dtype=wp.int8),
+    rows: wp.array(dtype=wp.int32),
+    start: wp.int32,
+    parent: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+    code: wp.array2d(dtype=wp.int32),
+):
+    """Problem ``rows[t]``, after :func:`_flood_union`: per vertex of unknown sign what its component
+    says, in ``code[t]``: 1 or -1, the sign of the component's known members; 2, members known on
+    both sides (a conflict: the vertex needs a query of its own); 3, no known member and this is the
+    component's first vertex (its representative, to be queried); ``-(4 + r)``, no known member and
+    ``r`` is the representative. 0 for vertices of known sign. ``flags``: scratch, per root which
+    signs its members have (1 outside, 2 inside), then the representative of a root without any."""
+    t = wp.tid() + start
+    r = rows[t]
+    n = sgn.shape[1]
+    for v in range(n):
+        flags[t, v] = 0
+    for v in range(n):
+        root = _root(parent, t, v)
+        parent[t, v] = root
+        s = sgn[r, v]
+        if s > wp.int8(0):
+            flags[t, root] = flags[t, root] | 1
+        elif s < wp.int8(0):
+            flags[t, root] = flags[t, root] | 2
+    for v in range(n):
+        c = int(0)
+        if sgn[r, v] == wp.int8(0):
+            root = parent[t, v]
+            f = flags[t, root]
+            if f == 1:
+                c = 1
+            elif f == 2:
+                c = -1
+            elif f == 3:
+                c = 2
+            elif f == 0:
+                flags[t, root] = 4 + v  # the first vertex of a component without a known member
+                c = 3
+            else:
+                c = -f
+        code[t, v] = c
 
 
 @wp.kernel
@@ -501,7 +563,7 @@ class CollisionTerm:
         self.obstacle_vertices = np.unique(self.obstacle_faces)
         # query points: the vertices of that surface; its undirected edges carry the sign flood fill
         self.edges = np.unique(e, axis=0)
-        self._edges_wp: tuple | None = None  # the edges' two columns as warp arrays (_safe_edges)
+        self._edges_wp: tuple | None = None  # the edges' two columns as warp arrays (_flood)
         self._boxes: tuple | None = None  # the current call's bodies' boxes (_active_frames)
         self._surface_mask: np.ndarray | None = None
         bp = None if bvh_points is None else np.ascontiguousarray(np.asarray(bvh_points, dtype=np.float32))
@@ -839,33 +901,33 @@ class CollisionTerm:
             _closest, dim=k, inputs=[*arrs, s, winding, sd, face, bary], device="cpu"))  # fmt: skip
         return sd.numpy().copy(), face.numpy().copy(), bary.numpy().copy()
 
-    def _safe_edges(self, points: np.ndarray, bound: np.ndarray, unknown: np.ndarray, rows: np.ndarray,
-                    V: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """The query mesh's edges the sign flood fill may follow in problems ``rows``: those with an
-        end of unknown sign whose ends' distance bounds add up to more than their length, so the edge
-        cannot cross the obstacle. ``points (N, 3)``, ``bound (N,)``, ``unknown (N,)`` flat over
-        ``(problem, vertex)``, ``V`` vertices a problem. Returns ``(problem, edge)`` index arrays
-        into ``rows``' problems and :attr:`edges`.
+    def _flood(self, points: np.ndarray, bound: np.ndarray, sgn: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The sign flood fill of problems ``rows`` (``points (P, V, 3)``, distance lower bounds
+        ``bound (P, V)``, signs ``sgn (P, V)`` with 0 unknown): per row of ``rows`` and vertex, what
+        its component along the edges that cannot cross the obstacle says (:func:`_flood_signs`'s
+        codes), ``(len(rows), V)`` int32.
 
-        One warp kernel over ``(rows, edges)``, in threads (numpy's gathers by flat index took ~0.3 s
-        of a hug window's ~1 s first check: line profile, 2026-11-26)."""
-        E = len(self.edges)
+        Two warp kernels, a union-find forest per problem (:func:`_flood_union`) and its roots'
+        signs (:func:`_flood_signs`), each thread owning whole problems. Before (until 2026-11-26),
+        a kernel marked the safe edges and scipy's ``connected_components`` ran over the graph of
+        all ``(problem, vertex)`` pairs: ~0.4 s of a hug window's ~0.65 s first check."""
+        P, V = sgn.shape
         if self._edges_wp is None:
             self._edges_wp = tuple(wp.array(np.ascontiguousarray(self.edges[:, i], np.int32), dtype=wp.int32, device="cpu")
                                    for i in (0, 1))  # fmt: skip
-        n = len(rows) * E
-        arrs = [
-            wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu"),
-            wp.array(np.ascontiguousarray(bound, np.float32), dtype=wp.float32, device="cpu"),
-            wp.array(np.ascontiguousarray(unknown, np.int32), dtype=wp.int32, device="cpu"),
-            wp.array(np.ascontiguousarray(rows, np.int32), dtype=wp.int32, device="cpu"),
-            *self._edges_wp,
-        ]
-        safe = wp.zeros(n, dtype=wp.int32, device="cpu")
-        self._launch_threaded(_safe_edges, n, _MIN_CHUNK, lambda s, k: wp.launch(
-            _safe_edges, dim=k, inputs=[*arrs, V, s, safe], device="cpu"))  # fmt: skip
-        hit = np.flatnonzero(safe.numpy())
-        return rows[hit // E], hit % E
+        n = len(rows)
+        arrs = [wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu", copy=False),
+                wp.array(np.ascontiguousarray(bound, np.float32), dtype=wp.float32, device="cpu", copy=False),
+                wp.array(np.ascontiguousarray(sgn, np.int8), dtype=wp.int8, device="cpu", copy=False),
+                wp.array(np.ascontiguousarray(rows, np.int32), dtype=wp.int32, device="cpu")]  # fmt: skip
+        parent = wp.empty((n, V), dtype=wp.int32, device="cpu")
+        flags = wp.empty((n, V), dtype=wp.int32, device="cpu")
+        code = wp.empty((n, V), dtype=wp.int32, device="cpu")
+        self._launch_threaded(_flood_union, n, 1, lambda s, k: wp.launch(
+            _flood_union, dim=k, inputs=[*arrs, *self._edges_wp, s, parent], device="cpu"))  # fmt: skip
+        self._launch_threaded(_flood_signs, n, 1, lambda s, k: wp.launch(
+            _flood_signs, dim=k, inputs=[arrs[2], arrs[3], s, parent, flags, code], device="cpu"))  # fmt: skip
+        return code.numpy()
 
     # ------------------------------------------------------------------------------------ exact contacts
     def _contacts(self, va: torch.Tensor, vb: torch.Tensor, frames: np.ndarray, keys: list | None = None,
@@ -986,9 +1048,6 @@ class CollisionTerm:
         """Penetrating vertices of the problems ``Q (P, V, 3)`` against ``O`` (and those outside
         within ``margin``), and per query vertex the sign ``(P, V)`` int8 and a lower bound
         ``(P, V)`` of the distance's magnitude. ``prior``: signs known to hold (:meth:`_prior`) or None."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
         P, V = Q.shape[:2]
         N = P * V
         Qf = Q.reshape(-1, 3)
@@ -1040,33 +1099,25 @@ class CollisionTerm:
             full(open_)
         elif len(open_):
             # (2) sign flood fill along the query mesh's edges that cannot cross the obstacle
-            unknown = sgn == 0
-            rows = np.flatnonzero(unknown.reshape(P, V).any(axis=1))  # problems with something to fill
-            pp, ee = self._safe_edges(Qf, lb, unknown, rows, V)
-            u, w = pp * V + self.edges[ee, 0], pp * V + self.edges[ee, 1]
-            graph = coo_matrix((np.ones(len(u), np.int8), (u, w)), shape=(N, N))
-            n_comp, comp = connected_components(graph, directed=False)
-            known = sgn != 0
-            pos, neg = np.zeros(n_comp, bool), np.zeros(n_comp, bool)
-            pos[comp[known & (sgn > 0)]] = True
-            neg[comp[known & (sgn < 0)]] = True
-            comp_sign = np.where(pos, 1, -1).astype(np.int8) * (pos ^ neg)  # 0: no known member, or both signs
-            open_comp = comp[open_]
+            rows = np.flatnonzero((sgn == 0).reshape(P, V).any(axis=1))  # problems with something to fill
+            code = self._flood(Q, lb.reshape(P, V), sgn.reshape(P, V), rows)
             # a component with members known inside and others known outside cannot exist if every sign
             # were right: a pseudonormal sign went wrong where the obstacle crosses itself (an arm pressed
             # into the torso). Its open members get a query each, not the sign of whichever member came last.
-            each = (pos & neg)[open_comp]
-            if each.any():
-                full(open_[each])
-                n_conflict = int(each.sum())
-            need = (comp_sign[open_comp] == 0) & ~each
-            if need.any():  # a component with no known member: one full query decides it
-                _, first = np.unique(open_comp[need], return_index=True)
-                sel = np.flatnonzero(need)[first]
-                full(open_[sel])
-                comp_sign[open_comp[sel]] = sgn[open_[sel]]
-                n_rep = len(sel)
-            sgn[open_[~each]] = comp_sign[open_comp[~each]]
+            t, v = np.nonzero(code == 2)
+            if len(t):
+                full(rows[t] * V + v)
+                n_conflict = len(t)
+            t, v = np.nonzero(code == 3)
+            if len(t):  # a component with no known member: its first vertex's full query decides it
+                full(rows[t] * V + v)
+                n_rep = len(t)
+            t, v = np.nonzero(code != 0)
+            c = code[t, v]
+            follow = c <= -4  # members of a component without a known member: their representative's sign
+            c[follow] = sgn[rows[t[follow]] * V + (-4 - c[follow])]
+            done = np.abs(c) == 1  # not the conflicts' and representatives' own (their queries set those)
+            sgn[rows[t[done]] * V + v[done]] = c[done]
         # (3) full query for the depth of far vertices inside
         deep = far[(sgn[far] < 0) & ~queried[far]]
         if len(deep):
