@@ -449,8 +449,8 @@ def test_flood_fill_components_are_those_of_the_edges_an_unknown_sign_cannot_cro
     """The flood fill's union-find (warp kernels) against scipy's connected components over the
     edges the rule allows: an end of unknown sign, and the ends' distance bounds adding up to more
     than the edge (a margin for float32 rounding). Per vertex of unknown sign: its component's known
-    sign, a conflict (members known on both sides), or, without a known member, the component's
-    first vertex (its representative) and the others pointing at it."""
+    sign (written into the signs), a conflict (members known on both sides), or, without a known
+    member, the component's first vertex (its representative) and the others pointing at it."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -462,8 +462,10 @@ def test_flood_fill_components_are_those_of_the_edges_an_unknown_sign_cannot_cro
     bound = rng.uniform(0.0, 0.02, (P, V)).astype(np.float32)
     sgn = rng.choice(np.array([-1, 0, 1], np.int8), size=(P, V), p=[0.1, 0.6, 0.3])
     rows = np.array([0, 2])  # problem 1 has nothing to fill
+    before = sgn.copy()
     code = ct._flood(pts, bound, sgn, rows)
     assert code.shape == (2, V)
+    np.testing.assert_array_equal(sgn[1], before[1])
     e0, e1 = ct.edges[:, 0], ct.edges[:, 1]
     counts = np.zeros(4, int)
     for t, p in enumerate(rows):
@@ -471,19 +473,21 @@ def test_flood_fill_components_are_those_of_the_edges_an_unknown_sign_cannot_cro
         total = bound[p, e0].astype(np.float64) + bound[p, e1]
         limit = length * (1 + 1e-4) + 1e-6
         assert not (np.abs(total - limit) < 1e-6 * total).any()  # no edge that float32 rounding could decide
-        ok = ((sgn[p, e0] == 0) | (sgn[p, e1] == 0)) & (total > limit)
+        ok = ((before[p, e0] == 0) | (before[p, e1] == 0)) & (total > limit)
         _, comp = connected_components(coo_matrix((np.ones(ok.sum()), (e0[ok], e1[ok])), shape=(V, V)), directed=False)
         pos = np.zeros(V, bool)
         neg = np.zeros(V, bool)
-        pos[comp[sgn[p] > 0]] = True
-        neg[comp[sgn[p] < 0]] = True
+        pos[comp[before[p] > 0]] = True
+        neg[comp[before[p] < 0]] = True
         first = np.full(V, -1)
         for v in range(V):
             if first[comp[v]] < 0:
                 first[comp[v]] = v
         c = comp
-        want = np.select([sgn[p] != 0, pos[c] & neg[c], pos[c], neg[c], first[c] == np.arange(V)], [0, 2, 1, -1, 3], -(4 + first[c]))
-        np.testing.assert_array_equal(code[t], want)
+        want = np.select([before[p] != 0, pos[c] & neg[c], pos[c], neg[c], first[c] == np.arange(V)], [0, 2, 1, -1, 3], -(4 + first[c]))
+        agreed = np.abs(want) == 1  # written into the signs; the code says what the others need
+        np.testing.assert_array_equal(sgn[p], np.where(agreed, want, before[p]))
+        np.testing.assert_array_equal(code[t], np.where(agreed, 0, want))
         counts += [(want == k).sum() for k in (1, -1, 2, 3)]
     assert (counts > 50).all(), counts  # every kind of answer occurs
 

@@ -261,12 +261,13 @@ def _flood_signs(
     flags: wp.array2d(dtype=wp.int32),
     code: wp.array2d(dtype=wp.int32),
 ):
-    """Problem ``rows[t]``, after :func:`_flood_union`: per vertex of unknown sign what its component
-    says, in ``code[t]``: 1 or -1, the sign of the component's known members; 2, members known on
-    both sides (a conflict: the vertex needs a query of its own); 3, no known member and this is the
-    component's first vertex (its representative, to be queried); ``-(4 + r)``, no known member and
-    ``r`` is the representative. 0 for vertices of known sign. ``flags``: scratch, per root which
-    signs its members have (1 outside, 2 inside), then the representative of a root without any."""
+    """Problem ``rows[t]``, after :func:`_flood_union`: each vertex of unknown sign whose component's
+    known members agree takes their sign (written into ``sgn``); ``code[t]`` says what the others
+    need: 2, members known on both sides (a conflict: the vertex needs a query of its own); 3, no
+    known member and this is the component's first vertex (its representative, to be queried);
+    ``-(4 + r)``, no known member and ``r`` is the representative. 0 for every other vertex.
+    ``flags``: scratch, per root which signs its members have (1 outside, 2 inside), then the
+    representative of a root without any. Launched again on a row it gives the same answer."""
     t = wp.tid() + start
     r = rows[t]
     n = sgn.shape[1]
@@ -286,9 +287,9 @@ def _flood_signs(
             root = parent[t, v]
             f = flags[t, root]
             if f == 1:
-                c = 1
+                sgn[r, v] = wp.int8(1)
             elif f == 2:
-                c = -1
+                sgn[r, v] = wp.int8(-1)
             elif f == 3:
                 c = 2
             elif f == 0:
@@ -903,8 +904,9 @@ class CollisionTerm:
 
     def _flood(self, points: np.ndarray, bound: np.ndarray, sgn: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """The sign flood fill of problems ``rows`` (``points (P, V, 3)``, distance lower bounds
-        ``bound (P, V)``, signs ``sgn (P, V)`` with 0 unknown): per row of ``rows`` and vertex, what
-        its component along the edges that cannot cross the obstacle says (:func:`_flood_signs`'s
+        ``bound (P, V)``, signs ``sgn (P, V)`` int8 with 0 unknown, written in place): each vertex of
+        unknown sign takes the sign its component along the edges that cannot cross the obstacle
+        agrees on; returns per row of ``rows`` and vertex what the others need (:func:`_flood_signs`'s
         codes), ``(len(rows), V)`` int32.
 
         Two warp kernels, a union-find forest per problem (:func:`_flood_union`) and its roots'
@@ -912,13 +914,15 @@ class CollisionTerm:
         a kernel marked the safe edges and scipy's ``connected_components`` ran over the graph of
         all ``(problem, vertex)`` pairs: ~0.4 s of a hug window's ~0.65 s first check."""
         P, V = sgn.shape
+        if sgn.dtype != np.int8 or not sgn.flags.c_contiguous:
+            raise ValueError("sgn must be a C-contiguous int8 array (it is written in place)")
         if self._edges_wp is None:
             self._edges_wp = tuple(wp.array(np.ascontiguousarray(self.edges[:, i], np.int32), dtype=wp.int32, device="cpu")
                                    for i in (0, 1))  # fmt: skip
         n = len(rows)
         arrs = [wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3, device="cpu", copy=False),
                 wp.array(np.ascontiguousarray(bound, np.float32), dtype=wp.float32, device="cpu", copy=False),
-                wp.array(np.ascontiguousarray(sgn, np.int8), dtype=wp.int8, device="cpu", copy=False),
+                wp.array(sgn, dtype=wp.int8, device="cpu", copy=False),  # written in place
                 wp.array(np.ascontiguousarray(rows, np.int32), dtype=wp.int32, device="cpu")]  # fmt: skip
         parent = wp.empty((n, V), dtype=wp.int32, device="cpu")
         flags = wp.empty((n, V), dtype=wp.int32, device="cpu")
@@ -1104,20 +1108,16 @@ class CollisionTerm:
             # a component with members known inside and others known outside cannot exist if every sign
             # were right: a pseudonormal sign went wrong where the obstacle crosses itself (an arm pressed
             # into the torso). Its open members get a query each, not the sign of whichever member came last.
-            t, v = np.nonzero(code == 2)
-            if len(t):
-                full(rows[t] * V + v)
-                n_conflict = len(t)
-            t, v = np.nonzero(code == 3)
-            if len(t):  # a component with no known member: its first vertex's full query decides it
-                full(rows[t] * V + v)
-                n_rep = len(t)
-            t, v = np.nonzero(code != 0)
-            c = code[t, v]
-            follow = c <= -4  # members of a component without a known member: their representative's sign
-            c[follow] = sgn[rows[t[follow]] * V + (-4 - c[follow])]
-            done = np.abs(c) == 1  # not the conflicts' and representatives' own (their queries set those)
-            sgn[rows[t[done]] * V + v[done]] = c[done]
+            t, v = np.nonzero(code)
+            c, at = code[t, v], rows[t] * V + v
+            if (c == 2).any():
+                full(at[c == 2])
+                n_conflict = int((c == 2).sum())
+            if (c == 3).any():  # a component with no known member: its first vertex's full query decides it
+                full(at[c == 3])
+                n_rep = int((c == 3).sum())
+            follow = c <= -4  # the other members of such a component: their representative's sign
+            sgn[at[follow]] = sgn[rows[t[follow]] * V + (-4 - c[follow])]
         # (3) full query for the depth of far vertices inside
         deep = far[(sgn[far] < 0) & ~queried[far]]
         if len(deep):
