@@ -14,7 +14,7 @@ import torch
 from dualhuman_builder.body.model import get_body_model
 from dualhuman_builder.fit.calibrate import CalibrationError, calibrate_shape
 from dualhuman_builder.fit.fitter import FitConfig, FitError, fit_actors
-from dualhuman_builder.fit.skeleton import BodyRig
+from dualhuman_builder.fit.skeleton import BodyRig, rotvec_to_rotmat
 from dualhuman_builder.sync.timeline import SyncError, synchronise
 
 
@@ -30,6 +30,30 @@ def _rig_and_pose(model, seed: int):
     """A BodyRig of :data:`SHAPE` and three random frames: segment rotations (3, 23, 3, 3), translations (3, 3)."""
     torch.manual_seed(seed)
     return BodyRig(model, SHAPE), roma.rotvec_to_rotmat(torch.randn(3, 23, 3) * 0.5), torch.randn(3, 3)
+
+
+def test_rotvec_to_rotmat_is_roma_with_one_node():
+    """The fit's fused rotation-vector conversion gives roma's matrices and gradients (float64, to
+    1e-10), at zero, tiny, Taylor-threshold (0.05 rad) and near-pi angles too, and its closed-form
+    gradient passes torch's numerical check; in float32 it agrees to float rounding."""
+    g = torch.Generator().manual_seed(3)
+    v = torch.randn(40, 3, generator=g, dtype=torch.float64) * 0.5
+    v[0] = 0.0
+    v[1] = torch.tensor([1e-8, -2e-8, 0.0])
+    v[2] = torch.tensor([0.0499, 0.001, 0.0])
+    v[3] = torch.tensor([0.0501, 0.0, 0.0])
+    v[4] = torch.tensor([0.0, 3.1, 0.2])
+    w = torch.randn(40, 3, 3, generator=g, dtype=torch.float64)
+    mine, theirs = v.clone().requires_grad_(True), v.clone().requires_grad_(True)
+    (rotvec_to_rotmat(mine) * w).sum().backward()
+    (roma.rotvec_to_rotmat(theirs) * w).sum().backward()
+    assert torch.allclose(rotvec_to_rotmat(v), roma.rotvec_to_rotmat(v), atol=1e-10)
+    assert torch.allclose(mine.grad[1:], theirs.grad[1:], atol=1e-7)  # roma's first-order branch at 1e-8
+    assert torch.allclose(mine.grad[5:], theirs.grad[5:], atol=1e-10)
+    assert torch.autograd.gradcheck(rotvec_to_rotmat, (v[:8].clone().requires_grad_(True),))
+    r32 = rotvec_to_rotmat(v.float().reshape(4, 10, 3))
+    assert r32.shape == (4, 10, 3, 3) and r32.dtype == torch.float32
+    assert (r32.double().reshape(40, 3, 3) - roma.rotvec_to_rotmat(v)).abs().max() < 1e-6
 
 
 def test_body_rig_is_anny_exactly(model):

@@ -84,13 +84,12 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-import roma
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
 from dualhuman_builder.errors import DualhumanError
-from dualhuman_builder.fit.skeleton import linear_pose
+from dualhuman_builder.fit.skeleton import linear_pose, rotvec_to_rotmat
 
 
 class FitError(DualhumanError):
@@ -304,7 +303,7 @@ class _Actor:
     def rotations(self, delta, sl):
         """Driven-bone rotations ``(n, 23, 3, 3)`` of timeline frames ``sl`` with the corrections
         ``delta (n, 23, 3)`` (world-frame rotation vectors on the retarget)."""
-        return roma.rotvec_to_rotmat(delta) @ self.target[sl]
+        return rotvec_to_rotmat(delta) @ self.target[sl]
 
     def skeleton(self, rot, transl):
         """What the skeleton terms read of driven-bone rotations ``rot (n, 23, 3, 3)`` and root
@@ -359,7 +358,7 @@ class _Stack:
     def rotations(self, delta, sl):
         """Driven-bone rotations ``(A, n, 23, 3, 3)`` of timeline frames ``sl`` with the corrections
         ``delta (A, n, 23, 3)``."""
-        return roma.rotvec_to_rotmat(delta) @ self.target[:, sl]
+        return rotvec_to_rotmat(delta) @ self.target[:, sl]
 
     def skeleton(self, rot, transl):
         """:meth:`_Actor.skeleton` of every actor at once: ``rot (A, n, 23, 3, 3)``, ``transl (A, n, 3)`` ->
