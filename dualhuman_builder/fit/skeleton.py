@@ -126,6 +126,7 @@ class BodyRig:
             t_glob = model.local_to_global(t_local[None])[0]  # (J, 3, 3)
         parents = model.bone_parents
         self.parents = torch.as_tensor(parents, device=self.device)
+        self._parent_or_root = self.parents.clamp(min=0)  # the root's own index for the root (its edge is zero)
         self.h0 = h0.to(self.device, dtype)
         edge = np.zeros((J, 3))
         for j in range(1, J):
@@ -239,13 +240,15 @@ class BodyRig:
         ``opening (B, 4)`` (:data:`~dualhuman_builder.body.hands.OPENINGS`; None: all 0) opens the
         fingers: each moved finger bone's local rotation is its open-hand rotation with the angle
         scaled by its opening (0 the relaxed rest hand, 1 flat), differentiably."""
-        rot = seg_rot[:, self.owner]
+        # index_select rather than rot[:, idx]: the same values, and its backward is an index_add,
+        # ~2.4x faster on the CPU than advanced indexing's accumulating index_put (48 frames)
+        rot = seg_rot.index_select(1, self.owner)
         if opening is None:
             return rot
-        rv = opening[:, self._open_slot, None] * self._open_rv  # (B, M, 3)
+        rv = opening.index_select(1, self._open_slot)[..., None] * self._open_rv  # (B, M, 3)
         local = rotvec_to_rotmat(rv)
         for bones, parents, pos in self._open_levels:
-            rot = rot.index_copy(1, bones, rot[:, parents] @ local[:, pos])
+            rot = rot.index_copy(1, bones, rot.index_select(1, parents) @ local.index_select(1, pos))
         return rot
 
     def add_linear(self, name: str, bones, vertex_ids) -> None:
@@ -307,7 +310,7 @@ class BodyRig:
         :meth:`bone_rotations`). ``vertices``: True skins the current vertex set
         (:meth:`set_vertices`), a name skins a subset from :meth:`add_subset`, False none."""
         rot = self.bone_rotations(seg_rot, opening)
-        parent_rot = rot[:, self.parents.clamp(min=0)]
+        parent_rot = rot.index_select(1, self._parent_or_root)
         e = (parent_rot @ self.edges[None, :, :, None])[..., 0]  # (B, J, 3); root's edge is zero
         heads = transl[:, None, :] + torch.einsum("jk,bkd->bjd", self.path, e)
         verts = None
