@@ -1192,8 +1192,8 @@ class CollisionTerm:
                           torch.as_tensor(c.bary, device=dev, dtype=dtype), torch.as_tensor(c.frame, device=dev))  # fmt: skip
         _, reads, q_t, o_t, w, frame_t = c.assembly
         pos = torch.cat([points(body, f, v).to(dtype) for body, f, v in reads])
-        p = pos[q_t]  # (M, 3)
-        x = pos[o_t]  # (M, 3, 3)
+        p = pos.index_select(0, q_t)  # (M, 3); index_select: its backward (index_add) is cheaper than indexing's
+        x = pos.index_select(0, o_t.reshape(-1)).reshape(-1, 3, 3)  # (M, 3, 3)
         closest = (w[:, :, None] * x).sum(dim=1)
         diff = closest - p
         if normals is None:  # every contact here is inside
