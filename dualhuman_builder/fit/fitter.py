@@ -406,7 +406,7 @@ def _energy(st: _Stack, delta, dtransl, opening, sl: slice, ctx, cfg: FitConfig,
         e = e + (low.pow(2) * st.stance[:, sl].float()).sum() / cfg.sigma_contact_m**2
     if soles_all.shape[1] >= 2:
         feet = torch.stack([soles_all[:, :, :n_s].mean(2), soles_all[:, :, n_s:].mean(2)], 2)  # (A, n', 2, 3)
-        step = (feet[:, 1:] - feet[:, :-1])[..., [0, 2]].pow(2).sum(-1)
+        step = (feet[:, 1:] - feet[:, :-1])[..., 0::2].pow(2).sum(-1)  # x and z (0::2: a view, not a gather)
         both = (stance[:, 1:] & stance[:, :-1]).float()
         e = e + (step * both).sum() / cfg.sigma_slide_m**2
     return _opening_energy(opening, ctx, after, cfg, fps, e), rot
