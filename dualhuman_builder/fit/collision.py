@@ -138,7 +138,7 @@ fill queries per frame) and is the least accurate (a 3 mm penetration reads as 4
 vertices instead of 8); libigl pays its tree build; the banded warp query with the flood fill is
 exact and fastest on deep overlaps, and within 10 % of plain full queries on shallow ones.
 
-Queries always run on the CPU (warp CPU kernels, scipy for the flood fill): CUDA tensors are
+Queries always run on the CPU (warp CPU kernels, the flood fill too): CUDA tensors are
 copied to the CPU for the query (``V x 3`` floats per body and frame) and the differentiable
 assembly runs on the tensors' own device. A :class:`CollisionTerm` serialises its calls (lock).
 """
