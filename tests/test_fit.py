@@ -34,8 +34,8 @@ def _rig_and_pose(model, seed: int):
 
 def test_rotvec_to_rotmat_is_roma_with_one_node():
     """The fit's fused rotation-vector conversion gives roma's matrices and gradients (float64, to
-    1e-10), at zero, tiny, Taylor-threshold (0.05 rad) and near-pi angles too, and its closed-form
-    gradient passes torch's numerical check; in float32 it agrees to float rounding."""
+    1e-10), at zero, tiny, 0.05 rad and near-pi angles too, and its closed-form gradient passes
+    torch's numerical check; in float32 it agrees to float rounding; a second derivative raises."""
     g = torch.Generator().manual_seed(3)
     v = torch.randn(40, 3, generator=g, dtype=torch.float64) * 0.5
     v[0] = 0.0
@@ -54,6 +54,10 @@ def test_rotvec_to_rotmat_is_roma_with_one_node():
     r32 = rotvec_to_rotmat(v.float().reshape(4, 10, 3))
     assert r32.shape == (4, 10, 3, 3) and r32.dtype == torch.float32
     assert (r32.double().reshape(40, 3, 3) - roma.rotvec_to_rotmat(v)).abs().max() < 1e-6
+    twice = v[5:8].clone().requires_grad_(True)
+    (g1,) = torch.autograd.grad((rotvec_to_rotmat(twice) * w[5:8]).sum(), twice, create_graph=True)
+    with pytest.raises(RuntimeError):  # first derivatives only, said loudly (no silent zero)
+        g1.sum().backward()
 
 
 def test_body_rig_is_anny_exactly(model):

@@ -34,15 +34,16 @@ import numpy as np
 import roma
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS, SegmentMapping, load_segment_mapping
 
 
 class _RotvecToRotmat(torch.autograd.Function):
     """``R = cos t I + a [v]x + b v v^T`` (Rodrigues, ``t = |v|``, ``a = sin t / t``, ``b = (1 - cos t) /
-    t^2 = (sin(t/2) / t)^2 2``, both from ``torch.sinc``: no cancellation, no branch at small angles)
+    t^2 = 2 sin^2(t/2) / t^2``, both from ``torch.sinc``: no cancellation, no branch at small angles)
     with a closed-form gradient: one node in the graph instead of roma's ~40 (the fit converts every
-    correction and opening at every evaluation)."""
+    correction and opening at every evaluation). First derivatives only (``once_differentiable``)."""
 
     @staticmethod
     def forward(ctx, v):
@@ -58,6 +59,7 @@ class _RotvecToRotmat(torch.autograd.Function):
         return skew + (b[..., None] * v)[..., :, None] * v[..., None, :]
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, g):
         # R = c I + a K(v) + b v v^T with c, a, b functions of t = |v|: dc/dv = -a v, da/dv = al v,
         # db/dv = be v (al = a'(t) / t = (c - a) / t^2, be = b'(t) / t = (a - 2 b) / t^2), so
@@ -495,6 +497,7 @@ class _SkinAt(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad):
         frames, verts = ctx.saved_tensors
         B, J = ctx.shape
