@@ -56,7 +56,7 @@ def test_rotvec_to_rotmat_is_roma_with_one_node():
     assert (r32.double().reshape(40, 3, 3) - roma.rotvec_to_rotmat(v)).abs().max() < 1e-6
     twice = v[5:8].clone().requires_grad_(True)
     (g1,) = torch.autograd.grad((rotvec_to_rotmat(twice) * w[5:8]).sum(), twice, create_graph=True)
-    with pytest.raises(RuntimeError):  # first derivatives only, said loudly (no silent zero)
+    with pytest.raises(RuntimeError):  # first derivatives only, said loudly (not silently missing terms)
         g1.sum().backward()
 
 
