@@ -444,6 +444,47 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     assert s["max_penetration_after_mm"] == pytest.approx(1000 * calls[2], rel=1e-3)
 
 
+@pytest.mark.parametrize("deep_m", [0.01, 0.0])
+def test_frames_the_full_rounds_start_deep_are_weighted_a_step_ahead(model, monkeypatch, deep_m):
+    """A frame the full rounds start with deeper than ``collision_deep_m`` has its collision term
+    weighted one step (``collision_weight_step``) ahead of the others from round 1 on. Seen as the
+    gradient of the fit's energy with respect to each frame's collision loss: the weight that frame
+    pays. Here the checks after the skeleton pass and after round 1 read frame 0 as 15 mm deep and
+    frame 1 as 5 mm."""
+    from dualhuman_builder.fit import collision
+
+    T = 2
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=2, hand_opening=False,
+                    collision_hold_contacts=False, collision_deep_m=deep_m)  # fmt: skip
+    real_pen, real_call = collision.CollisionTerm.penetration, collision.CollisionTerm.__call__
+    checks, weights = [], []
+
+    def read(self, va, vb, keys=None):
+        out = real_pen(self, va, vb, keys)
+        checks.append(1)
+        if len(checks) <= 2:  # after the skeleton pass and after round 1 (so that round 2 runs)
+            out["max_depth_m"] = np.array([0.015, 0.005])
+        return out
+
+    def watch(self, va, vb, keys=None, points=None):
+        r = real_call(self, va, vb, keys, points)
+        if r.loss.requires_grad:
+            r.loss.register_hook(lambda g, n=len(checks): weights.append((n, g.detach().clone())))
+        return r
+
+    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
+    monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
+    s = fit_actors(model, _overlapping_pair(T, dx=0.02), 15.0, cfg).summary  # 2 cm: still in contact in round 2
+    assert s["collision_rounds_used"] == 2 and s["collision_diverged"] == []
+    w, step = cfg.collision_weight, cfg.collision_weight_step
+    ahead = step if deep_m else 1.0
+    by_round = {n: g for n, g in weights}  # n: checks before the evaluation (1: round 1, 2: round 2)
+    assert set(by_round) == {1, 2}
+    for n, g in weights:
+        expected = torch.tensor([ahead, 1.0]) * w * step ** (n - 1)
+        assert torch.allclose(g, expected, rtol=1e-6), (n, g, expected)
+
+
 @pytest.mark.parametrize("share_tolerance, rounds", [(0.0005, 2), (0.01, 1)])
 def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes_round_again(
         model, monkeypatch, share_tolerance, rounds):  # fmt: skip

@@ -25,7 +25,11 @@ resting on the partner opens flat instead of leaving the relaxed thumb and finge
 window's collision passes start with one over the openings alone, then the full rounds. That pass
 reads only what the openings change: the located contacts touching a finger
 (:meth:`~dualhuman_builder.fit.collision.CollisionTerm.moving_only`) and the openings' own terms
-(:func:`_opening_energy`), the bones held as constants (no gradient into them).
+(:func:`_opening_energy`), the bones held as constants (no gradient into them). Each pass weights
+the term ``collision_weight_step`` (4) times the one before; a frame that the full rounds start with
+deeper than ``collision_deep_m`` (1 cm) is weighted one step ahead of the others from round 1 on:
+past the robust loss's 1 cm scale a vertex's push stops growing with its depth, and such a frame
+barely moved in round 1.
 
 The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
 rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a
@@ -138,6 +142,15 @@ class FitConfig:
     #: the joint error's second difference away from the seams 6.1 -> 14.3 mm/frame^2 (bench_fit's jitter),
     #: so 4 stays
     collision_weight_step: float = 4.0
+    #: a frame that the full rounds start with deeper than this (m) has its collision term one weight
+    #: step ahead of the others from round 1 on (x16 the hands' weight where they get x4; 0: off). Past
+    #: the pseudo-Huber's scale (``CollisionTerm`` ``robust_sigma_m``, 1 cm) a vertex's push no longer
+    #: grows with its depth, so a deep overlap (a hug's arm 3 cm into the partner after the skeleton
+    #: pass) barely moved in round 1 and every window in contact spent a round on it: on the fit
+    #: benchmark's 0.5-minute hug (one process, 2026-11-27, a script outside the repo) 78 -> 56 full
+    #: rounds, MPJPE 2.89 -> 3.08 mm; 1 cm and 2 cm there gave the same rounds, 5 mm 58; two steps
+    #: ahead, or another step for each round a frame stays that deep, were slower. Figures in the README
+    collision_deep_m: float = 0.01
     collision_tolerance_m: float = 0.002
     #: ... or a frame has more than this share of both bodies' vertices inside the other (any depth; 0.05 %:
     #: half the issue's goal, so a palm resting a millimetre deep on the partner goes round again too)
@@ -804,6 +817,10 @@ class _Fitter:
                     for i_pass, what in enumerate(passes):
                         n_round += what == "all"
                         weight = cfg.collision_weight * cfg.collision_weight_step ** i_pass  # the hands' pass included
+                        if i_pass == 0:  # per row of the span, the weight's multiple (collision_deep_m)
+                            ahead = np.ones(c1 - c0)
+                        if what == "all" and n_round == 1 and cfg.collision_deep_m > 0:
+                            ahead = np.where(best[2] > cfg.collision_deep_m, cfg.collision_weight_step, 1.0)
                         hit_t = torch.as_tensor(hit, device=dev)
                         start_left = best[2]  # the span's depths at the start of this pass (it starts from the best)
                         free = chands if what == "hands" else cbones + chands
@@ -829,8 +846,10 @@ class _Fitter:
                             if held is not None:
                                 held = collide.moving_only(held, self.fingers)
 
+                        ahead_h, ahead_x = (torch.as_tensor(ahead[hit[r]], dtype=cparams[0].dtype, device=dev) for r in (rows_h, rows_x))
+
                         def cclosure(hit=hit, hit_t=hit_t, weight=weight, copt=copt, held=held, rows_h=rows_h,
-                                     rows_x=rows_x, fixed=fixed):  # fmt: skip
+                                     rows_x=rows_x, fixed=fixed, ahead_h=ahead_h, ahead_x=ahead_x):  # fmt: skip
                             if not _finite(cparams):
                                 raise _Diverged
                             copt.zero_grad()
@@ -852,11 +871,11 @@ class _Fitter:
 
                             c = 0.0
                             if held is not None:
-                                c = c + collide.linear_loss(held, at(rows_h), device=dev).sum()
+                                c = c + (ahead_h * collide.linear_loss(held, at(rows_h), device=dev)).sum()
                             if len(rows_x):  # the full meshes, without gradient, locate the contacts
                                 with torch.no_grad():
                                     vs = [p.vertices for p in pose_all(cparams, csl, hit_t[rows_x])]
-                                c = c + collide(vs[0], vs[1], keys=c0 + hit[rows_x], points=at(rows_x)).loss.sum()
+                                c = c + (ahead_x * collide(vs[0], vs[1], keys=c0 + hit[rows_x], points=at(rows_x)).loss).sum()
                             e = e + weight * c
                             e.backward()
                             return e
