@@ -591,6 +591,45 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
     assert s["max_penetration_after_mm"] == pytest.approx(exact.summary["max_penetration_after_mm"], abs=1e-3)
 
 
+@pytest.mark.parametrize("ratio", [2.0, 1e-9])
+def test_held_rounds_that_settle_after_a_stall_with_the_shape_bent_are_fitted_again_exactly(model, monkeypatch, ratio):
+    """Where the held rounds settle a window only after a stall, but with its skeleton energy more
+    than ``collision_energy_ratio`` times the skeleton pass's, the window is fitted again the exact
+    way and the lower-energy answer of the two is kept (listed in ``collision_energy_refits``). Here
+    frame 0's held term pushes nothing, so round 1 stalls there and frame 0 goes exact; the window
+    then settles at a ratio over 1e-9 but under 2."""
+    import re
+
+    from dualhuman_builder.fit import collision
+
+    T = 2
+    inputs = _overlapping_pair(T, dx=0.17)
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=6, hand_opening=False, sigma_slide_m=1e3,
+                    collision_energy_ratio=ratio)  # fmt: skip
+    real_linear = collision.CollisionTerm.linear_loss
+
+    def nothing_in_frame_0(self, lin, points, device=None, dtype=torch.float32):
+        loss = real_linear(self, lin, points, device, dtype)
+        return loss * torch.tensor([0.0, 1.0]) if lin.B == 2 else loss
+
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", nothing_in_frame_0)
+    messages = []
+    res = fit_actors(model, inputs, 15.0, cfg, progress=messages.append)
+    s = res.summary
+    assert s["collision_held_stalled"] == ["frames 0-1, collision round 1, held contacts"]
+    assert s["max_penetration_after_mm"] <= 1000 * cfg.collision_tolerance_m
+    if ratio == 2.0:
+        assert s["collision_energy_refits"] == [] and s["collision_exact_windows"] == []
+        return
+    assert s["collision_exact_windows"] == ["frames 0-1"]
+    [refit] = s["collision_energy_refits"]
+    m = re.fullmatch(r"frames 0-1: skeleton energy ([0-9.]+)x the skeleton pass's held, ([0-9.]+)x exact; kept (held|exact)", refit)
+    assert m, refit
+    held, exact, kept = float(m[1]), float(m[2]), m[3]
+    assert 0 < held < 2 and exact > 0 and kept == ("held" if held <= exact else "exact")
+    assert any("the held rounds settled with the skeleton energy" in x and "fitted again the exact way" in x for x in messages)
+
+
 def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch):
     """The depths a fit reports after the collision term are those of the bodies it returns, frame by
     frame (measured again here on anny's own meshes), though the end of a segment measures only the
