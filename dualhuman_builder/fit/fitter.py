@@ -957,7 +957,7 @@ class _Fitter:
                                     say(f"{label}: {int(stuck.sum())} frames stuck, restarted from their neighbours")
                     if mode == "held" and settled and len(modes) == 2 and len(exact) and cfg.collision_energy_ratio > 0:
                         # settled after a stall: was the shape bent to get there? (collision_energy_ratio)
-                        e_start, e_held = skel_e(start[1]), skel_e(best[1])
+                        e_start, e_held = max(skel_e(start[1]), 1e-12), skel_e(best[1])  # (an energy of 0: no division by it)
                         if e_held > cfg.collision_energy_ratio * e_start:
                             settled = False
                             say(f"frames {c0}-{c1 - 1}: the held rounds settled with the skeleton energy {e_held / e_start:.1f}x "
@@ -970,7 +970,7 @@ class _Fitter:
                         return x[0] <= cfg.collision_tolerance_m and x[3].max() <= cfg.collision_share_tolerance
 
                     if ok(held_best) and ok(best):  # both settled (the energy's refit): the lower energy
-                        e_start, e_held, e_exact = skel_e(start[1]), skel_e(held_best[1]), skel_e(best[1])
+                        e_start, e_held, e_exact = max(skel_e(start[1]), 1e-12), skel_e(held_best[1]), skel_e(best[1])
                         keep_held = e_held <= e_exact
                         out.energy_refits.append(f"frames {c0}-{c1 - 1}: skeleton energy {e_held / e_start:.2f}x the skeleton pass's held, "
                                                  f"{e_exact / e_start:.2f}x exact; kept {'held' if keep_held else 'exact'}")  # fmt: skip
