@@ -626,7 +626,9 @@ def test_held_rounds_that_settle_after_a_stall_with_the_shape_bent_are_fitted_ag
     m = re.fullmatch(r"frames 0-1: skeleton energy ([0-9.]+)x the skeleton pass's held, ([0-9.]+)x exact; kept (held|exact)", refit)
     assert m, refit
     held, exact, kept = float(m[1]), float(m[2]), m[3]
-    assert 0 < held < 2 and exact > 0 and kept == ("held" if held <= exact else "exact")
+    assert 0 < held < 2 and exact > 0
+    if held != exact:  # (the ratios are printed to 2 decimals: equal ones do not say which was lower)
+        assert kept == ("held" if held < exact else "exact")
     assert any("the held rounds settled with the skeleton energy" in x and "fitted again the exact way" in x for x in messages)
 
 
