@@ -535,33 +535,64 @@ def test_contacts_only_the_moving_vertices_change_give_the_same_gradient(bodies,
         ct.moving_only(lin, moving[:-1])
 
 
-def test_signs_are_kept_away_from_the_parts_that_alone_moved(bodies, body_model):
-    """With ``move_groups`` (the fingers of each hand), a call after only the fingers moved keeps the
-    remembered signs of the vertices far from them, where the plain bound (the obstacle's largest move)
-    keeps none: fewer queries, the same answer as a fresh call. A move elsewhere falls back to the plain
-    bound, with the same answer too."""
+def test_signs_are_kept_away_from_the_parts_that_moved_far(bodies, body_model):
+    """With ``parts`` (here: the fingers of each hand, and the rest), a call after the fingers moved 3 cm
+    keeps the remembered signs of the vertices far from them, where the plain bound (the obstacle's
+    largest move) keeps few: fewer queries, the same answer as a fresh call. So it does when the rest
+    moved a millimetre too (each part's own move bounds it), and then every vertex 1 mm again."""
     groups = _finger_groups(body_model)
     fingers = torch.as_tensor(groups > 0)
     a, b = place(bodies, dz=HUG_DZ)
-    # every finger vertex 3 cm down, the rest still
-    a2, b2 = (x + torch.where(fingers[:, None], torch.tensor([0.0, -0.03, 0.0]), torch.zeros(3)) for x in (a, b))
-    fresh = CollisionTerm(bodies["faces"], band_m=0.03).linearise(a2, b2, margin_m=0.005)
-    reused = {}
-    for name, mg in (("plain", None), ("groups", groups)):
-        ct = CollisionTerm(bodies["faces"], band_m=0.03, move_groups=mg)
-        ct.linearise(a, b, keys=[7], margin_m=0.005)
-        lin = ct.linearise(a2, b2, keys=[7], margin_m=0.005)
-        reused[name] = ct.last_stats["reused"]
-        for f in ("frame", "side", "vert", "face"):
-            assert np.array_equal(getattr(lin.contacts, f), getattr(fresh.contacts, f))
-        assert np.allclose(lin.contacts.depth, fresh.contacts.depth, atol=1e-7)
-        assert np.array_equal(lin.penetrating, fresh.penetrating)
-        # then everything moves 1 mm: the same answer as a fresh call
-        a3, b3 = a2 + 0.001, b2 - 0.001
-        lin3 = ct.linearise(a3, b3, keys=[7], margin_m=0.005)
-        fresh3 = CollisionTerm(bodies["faces"], band_m=0.03).linearise(a3, b3, margin_m=0.005)
-        assert np.array_equal(lin3.contacts.vert, fresh3.contacts.vert) and np.array_equal(lin3.penetrating, fresh3.penetrating)
-    assert fresh.penetrating[0] > 0
-    assert reused["groups"] > 5 * reused["plain"] and reused["groups"] > 15000, reused
-    with pytest.raises(ValueError, match="move_groups"):
-        CollisionTerm(bodies["faces"], move_groups=groups[:100])
+    # every term's meshes are built over the same points (which of two equally close faces a query returns
+    # depends on the tree a build made)
+    same = {"band_m": 0.03, "bvh_points": a[0].numpy()}
+    down = torch.where(fingers[:, None], torch.tensor([0.0, -0.03, 0.0]), torch.zeros(3))
+    for rest in (torch.zeros(3), torch.tensor([0.001, 0.0, 0.0])):
+        # every finger vertex 3 cm down, the rest still or 1 mm to the side
+        a2, b2 = (x + down + torch.where(fingers[:, None], torch.zeros(3), rest) for x in (a, b))
+        fresh = CollisionTerm(bodies["faces"], **same).linearise(a2, b2, margin_m=0.005)
+        reused = {}
+        for name, parts in (("plain", None), ("parts", groups)):
+            ct = CollisionTerm(bodies["faces"], parts=parts, **same)
+            assert ct.num_parts == (1 if parts is None else 3)
+            ct.linearise(a, b, keys=[7], margin_m=0.005)
+            lin = ct.linearise(a2, b2, keys=[7], margin_m=0.005)
+            reused[name] = ct.last_stats["reused"]
+            for f in ("frame", "side", "vert", "face"):
+                assert np.array_equal(getattr(lin.contacts, f), getattr(fresh.contacts, f))
+            assert np.allclose(lin.contacts.depth, fresh.contacts.depth, atol=1e-7)
+            assert np.array_equal(lin.penetrating, fresh.penetrating)
+            # then everything moves 1 mm: the same answer as a fresh call
+            a3, b3 = a2 + 0.001, b2 - 0.001
+            lin3 = ct.linearise(a3, b3, keys=[7], margin_m=0.005)
+            fresh3 = CollisionTerm(bodies["faces"], **same).linearise(a3, b3, margin_m=0.005)
+            assert np.array_equal(lin3.contacts.vert, fresh3.contacts.vert) and np.array_equal(lin3.penetrating, fresh3.penetrating)
+        assert fresh.penetrating[0] > 0
+        assert reused["parts"] > 5 * reused["plain"] and reused["parts"] > 15000, reused
+    with pytest.raises(ValueError, match="parts"):
+        CollisionTerm(bodies["faces"], parts=groups[:100])
+
+
+def test_frames_never_seen_start_from_their_neighbours_signs(bodies):
+    """With ``seed_stride`` (4 by default) a call naming frames it has never seen finds every fourth
+    first, then the others from the signs of the one before them: the same contacts as finding each
+    alone (``seed_stride=1``), with most signs carried over instead of asked again."""
+    steps = np.arange(9) * 0.002  # b walks into a, 2 mm a frame
+    b = torch.cat([place(bodies, dz=HUG_DZ - dz)[1] for dz in steps])
+    a = bodies["a"].expand(len(steps), -1, -1).contiguous()
+    same = {"band_m": 0.03, "bvh_points": bodies["a"][0].numpy()}
+    out = {}
+    for stride in (1, 4):
+        ct = CollisionTerm(bodies["faces"], seed_stride=stride, **same)
+        assert [list(r) for r, _ in ct._levels(list(range(9)), a.shape[1])] == (
+            [list(range(9))] if stride == 1 else [[0, 4, 8], [2, 6], [1, 3, 5, 7]])
+        out[stride] = (ct.linearise(a, b, keys=range(9), margin_m=0.005), dict(ct.last_stats))
+    (one, s1), (seeded, s4) = out[1], out[4]
+    for f in ("frame", "side", "vert", "face"):
+        assert np.array_equal(getattr(one.contacts, f), getattr(seeded.contacts, f))
+    assert np.allclose(one.contacts.depth, seeded.contacts.depth, atol=1e-7)
+    assert np.array_equal(one.penetrating, seeded.penetrating) and one.penetrating.min() > 0
+    assert s1["reused"] == 0 and s4["reused"] > 0.5 * s4["candidates"], s4
+    assert s4["near"] + s4["far"] < 0.8 * (s1["near"] + s1["far"])  # queries (the inside vertices still need their depth)
+    with pytest.raises(ValueError, match="seed_stride"):
+        CollisionTerm(bodies["faces"], seed_stride=3)

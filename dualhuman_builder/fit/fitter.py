@@ -689,7 +689,7 @@ class _Fitter:
                 rest = self.acts[0].rig.pose(eye, torch.zeros(1, 3, device=self.dev), True).vertices[0].cpu().numpy()
             self.collide = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01,
                                          guard_vertices=torso_vertices(model), bvh_points=rest,
-                                         move_groups=self.acts[0].rig.opening_groups)  # fmt: skip
+                                         parts=self.acts[0].rig.parts)  # fmt: skip
 
     def segment(self, wins: list[tuple[int, int, int]], n_windows: int, say: Callable[[str], None],
                 init: dict | None = None, origin: int = 0) -> _Part:  # fmt: skip
