@@ -485,6 +485,58 @@ def test_frames_the_full_rounds_start_deep_are_weighted_a_step_ahead(model, monk
         assert torch.allclose(g, expected, rtol=1e-6), (n, g, expected)
 
 
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_round_moves_only_the_frames_left_over_a_tolerance_and_their_neighbours(model, monkeypatch, hold):
+    """With ``collision_hold_settled`` a full round moves only the frames the pass before left over a
+    tolerance and the two on either side (their smoothness terms read them); the others are held: no
+    collision term is evaluated on them, the check after the round measures only the frames it moved,
+    and they keep their corrections exactly. Here the checks read every frame 15 mm deep after the
+    skeleton pass, only frame 6 of 8 over the tolerance after round 1, and nothing after round 2."""
+    from dualhuman_builder.fit import collision
+
+    T = 8
+    cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=3, hand_opening=False,
+                    collision_hold_contacts=False, collision_hold_settled=hold)  # fmt: skip
+    real_pen, real_call = collision.CollisionTerm.penetration, collision.CollisionTerm.__call__
+    checks, evaluated, after = [], [], []  # after: the optimised tensors after each L-BFGS run
+
+    def read(self, va, vb, keys=None):
+        out = real_pen(self, va, vb, keys)
+        keys = [int(k) for k in keys]
+        checks.append(keys)
+        depth = {1: 0.015, 2: 0.0}.get(len(checks), 0.0)
+        out["max_depth_m"] = np.array([0.005 if (len(checks) == 2 and k == 6) else depth for k in keys])
+        out["share"] = np.zeros(len(keys))
+        return out
+
+    def watch(self, va, vb, keys=None, points=None):
+        evaluated.append((len(checks), [int(k) for k in keys]))
+        return real_call(self, va, vb, keys, points)
+
+    real_step = torch.optim.LBFGS.step
+
+    def step(self, closure):
+        out = real_step(self, closure)
+        after.append([p.detach().clone() for p in self.param_groups[0]["params"]])
+        return out
+
+    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
+    monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
+    monkeypatch.setattr(torch.optim.LBFGS, "step", step)
+    s = fit_actors(model, _overlapping_pair(T, dx=0.02), 15.0, cfg).summary
+    assert s["collision_rounds_used"] == 2 and s["collision_diverged"] == [] and s["collision_worsened"] == []
+    moved = [4, 5, 6, 7] if hold else list(range(T))
+    assert checks[:2] == [list(range(T))] * 2 and checks[2] == moved
+    round2 = {k for n, keys in evaluated if n == 2 for k in keys}
+    assert round2 == set(moved)
+    assert {k for n, keys in evaluated if n == 1 for k in keys} == set(range(T))
+    assert len(after) == 3  # the skeleton pass, rounds 1 and 2: each actor's rotations and translations
+    held = [k for k in range(T) if k not in moved]
+    for r1, r2 in zip(after[1], after[2]):
+        assert torch.equal(r1[held], r2[held])  # exactly where round 1 left them
+        assert not torch.equal(r1[moved], r2[moved])
+
+
 @pytest.mark.parametrize("share_tolerance, rounds", [(0.0005, 2), (0.01, 1)])
 def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes_round_again(
         model, monkeypatch, share_tolerance, rounds):  # fmt: skip
