@@ -29,7 +29,9 @@ reads only what the openings change: the located contacts touching a finger
 the term ``collision_weight_step`` (4) times the one before; a frame that the full rounds start with
 deeper than ``collision_deep_m`` (1 cm) is weighted one step ahead of the others from round 1 on:
 past the robust loss's 1 cm scale a vertex's push stops growing with its depth, and such a frame
-barely moved in round 1.
+barely moved in round 1. Each full round moves only the frames the pass before it left over a
+tolerance and the two on either side of them (``collision_hold_settled``); the settled ones are held
+where they are, and the check after the round measures only the frames it moved.
 
 The skeleton terms read ~30 bone heads and ~80 sole vertices per actor, linear in the 23 driven
 rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matrix product; a

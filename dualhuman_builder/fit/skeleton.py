@@ -425,8 +425,16 @@ def linear_pose(seg_rot: torch.Tensor, transl: torch.Tensor, mat: torch.Tensor, 
     ``transl (..., 3)``, ``mat (..., 3S, N)`` and ``wsum (..., N)`` (broadcast against the leading
     axes: one rig's, or a stack of rigs' with a frame axis of 1) -> positions ``(..., N, 3)``."""
     lead = seg_rot.shape[:-3]
-    out = (seg_rot.transpose(-3, -2).reshape(*lead, 3, -1) @ mat).transpose(-1, -2)
-    return out + wsum[..., :, None] * transl[..., None, :]
+    x = seg_rot.transpose(-3, -2).reshape(*lead, 3, -1)  # (..., 3, 3S)
+    if len(lead) >= 2 and mat.dim() == x.dim() and mat.shape[-3] == 1:
+        # a stack of rigs with a frame axis of 1: the frames folded into the rows, one (3n, 3S) @ (3S, N)
+        # product per rig, instead of broadcasting `mat` to every frame (a copy of it per frame and
+        # evaluation, and 3 x 3S @ 3S x N products: ~1.4 ms of a hug window's ~23 ms collision
+        # evaluation on 2026-11-27, torch's profiler)
+        y = (x.reshape(*lead[:-1], lead[-1] * 3, x.shape[-1]) @ mat.squeeze(-3)).reshape(*lead, 3, -1)
+    else:
+        y = x @ mat
+    return y.transpose(-1, -2) + wsum[..., :, None] * transl[..., None, :]
 
 
 def _warp_cpu(rot: torch.Tensor, heads: torch.Tensor) -> bool:
