@@ -93,19 +93,18 @@ Reuse across calls (``keys``)
     keyed call had it outside. On a 90-frame hug fit the term's time fell from 87 s to 33 s
     (queries 20.7 s -> 2.7 s; the rest is per-vertex bookkeeping in numpy and mesh refits).
     Stale entries are only less useful, never wrong; ``max_memo`` bounds them (oldest dropped),
-    ``clear_memo()`` frees them. With ``parts`` (``(V,)`` ints; the fitter's: the body's segments,
-    and each hand's fingers their own, :attr:`~dualhuman_builder.fit.skeleton.BodyRig.parts`) the
-    bound is taken per part of the obstacle: each part's faces lie within its own largest move of
-    where they were, and within the box of its face corners old and new, so a vertex keeps its sign
-    where, for every part, ``lb - |dq|`` less the part's move, or the distance to its box less
-    ``|dq|``, is positive (:meth:`CollisionTerm._prior`). An arm pushed 3 cm out of the partner no
-    longer costs the signs of every vertex near the legs. On the fit benchmark's 0.25-minute hug the
-    checks kept 99.2 % of the remembered signs instead of 88.4 % (2026-11-27, a script outside the
-    repo). The fitter's hands' pass moves the fingers alone: before the bound was per part (until
-    2026-11-27: "move groups", the fingers only), the check after it reused 1.20 of 1.23 million
-    candidates' signs instead of 0.65 million on the same hug, the flood fill's vertices 500,000 ->
-    3,200 (same answers; 2026-11-26). The bound is computed by three warp kernels (:func:`_moves`,
-    :func:`_part_moves`, :func:`_kept_signs`).
+    ``clear_memo()`` frees them. With ``parts`` (``(V,)`` ints; the fitter's: each hand's fingers, and
+    the rest, :attr:`~dualhuman_builder.fit.skeleton.BodyRig.opening_groups`) the bound is taken per
+    part of the obstacle: each part's faces lie within its own largest move of where they were, and
+    within the box of its face corners old and new, so a vertex keeps its sign where, for every part,
+    ``lb - |dq|`` less the part's move, or the distance to its box less ``|dq|``, is positive
+    (:meth:`CollisionTerm._prior`). The fitter's hands' pass moves the fingers alone: with them as
+    parts (until 2026-11-27 a special case, "move groups") the check after it reused 1.20 of 1.23
+    million candidates' signs instead of 0.65 million on the fit benchmark's hug, the flood fill's
+    vertices 500,000 -> 3,200 (same answers; 2026-11-26). The body's 23 segments as parts as well
+    kept 99.2 % of all remembered signs instead of 88.4 % in a 0.25-minute hug's checks, but few more
+    of the candidates', and cost more than they saved (2026-11-27, scripts outside the repo). The
+    bound is computed by three warp kernels (:func:`_moves`, :func:`_part_moves`, :func:`_kept_signs`).
 
 Held contacts (:meth:`CollisionTerm.linearise`, :meth:`CollisionTerm.linear_loss`)
     Locate the contacts once (plus the vertices outside within a margin) and evaluate the term many

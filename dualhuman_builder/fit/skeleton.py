@@ -214,12 +214,6 @@ class BodyRig:
         self.opening_groups = np.where(w > 0, side[idx], 0).max(axis=1)
         #: ``(V,)`` bool: the vertices the hand openings move
         self.opening_vertices = self.opening_groups > 0
-        #: ``(V,)`` int: the parts of the body that move together, for the collision term's bound on how
-        #: far each part moved (:class:`~dualhuman_builder.fit.collision.CollisionTerm`'s ``parts``): the
-        #: driven segment (``MVN_SEGMENTS`` index) owning each vertex's dominant bone, and each hand's
-        #: fingers their own (``len(MVN_SEGMENTS)`` + its opening group), since the hands' pass moves them alone
-        self.parts = np.where(self.opening_vertices, len(MVN_SEGMENTS) + self.opening_groups,
-                              self.owner.cpu().numpy()[np.asarray(model.vertex_bone())])  # fmt: skip
         # bones below an opened one keep a zero rotation vector (identity at any opening): they are
         # only re-composed with their parent's new rotation
         self._open_rv = torch.as_tensor(np.array([rv.get(j, np.zeros(3)) for j in order]), device=self.device, dtype=self.dtype)
