@@ -933,6 +933,18 @@ def test_fit_workers_follow_cpus_segments_memory_and_the_device():
     assert fit_workers(5, FitConfig(device="cuda"), cpus=16, available_bytes=plenty) == 1
 
 
+def test_the_collision_term_shares_the_cpus_among_the_fits_processes(model):
+    """Each of a fit's processes gives its collision term the CPUs shared out among them (at least one,
+    at most eight): two processes on two CPUs run one query thread each, not two that wait on each
+    other."""
+    from dualhuman_builder.fit.fitter import _Fitter, collision_threads
+
+    assert [collision_threads(p, cpus=2) for p in (1, 2, 3)] == [2, 1, 1]
+    assert collision_threads(1, cpus=16) == 8 and collision_threads(4, cpus=16) == 4
+    cfg = FitConfig(window=4)
+    assert _Fitter(model, _overlapping_pair(4), 15.0, cfg, threads=1).collide.threads == 1
+
+
 def test_both_actors_skeleton_energy_at_once_is_the_sum_of_each_alone(model):
     """The skeleton terms of both actors are evaluated as one stack (:class:`_Stack`, trackers padded to
     the most either has): energy and gradient equal the sum of each actor evaluated alone, here with

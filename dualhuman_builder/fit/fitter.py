@@ -582,11 +582,25 @@ def fit_workers(segments: int, cfg: FitConfig, cpus: int | None = None, availabl
     if torch.device(cfg.device).type != "cpu" or segments <= 1:
         return 1
     if cpus is None:
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cpus = _cpus()
     if available_bytes is None:
         available_bytes = _available_memory()
     by_memory = max(1, int(available_bytes // WORKER_BYTES)) if available_bytes else cpus
     return max(1, min(cpus, segments, by_memory))
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def collision_threads(processes: int, cpus: int | None = None) -> int:
+    """The collision term's query threads in each of a fit's ``processes`` (this one included): the CPUs
+    shared out among them, at least 1 and at most 8. More threads than CPUs only wait on each other: on
+    the fit benchmark's 1-minute hug on 2 processes and 2 CPUs, one thread each instead of two ran at
+    28.4, 36.1 and 33.6 pairs/s against 28.0, 31.7 and 29.2 in alternating pairs (2026-11-27, a script
+    outside the repo)."""
+    return max(1, min(8, (_cpus() if cpus is None else int(cpus)) // max(1, int(processes))))
 
 
 #: what one more fitting process may need (its peak resident memory on the 1-minute benchmark hug,
@@ -679,7 +693,8 @@ class _Fitter:
     """Both actors' tensors and the collision term for one take: fits its segments
     (:func:`layout`), in this process or in a worker (:mod:`dualhuman_builder.fit.workers`)."""
 
-    def __init__(self, model, inputs: list[ActorInput], fps: float, cfg: FitConfig):
+    def __init__(self, model, inputs: list[ActorInput], fps: float, cfg: FitConfig, threads: int | None = None):
+        """``threads``: the collision term's query threads (None: its default, the CPUs up to 8)."""
         from dualhuman_builder.fit.collision import CollisionTerm
         from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
 
@@ -706,7 +721,7 @@ class _Fitter:
                 eye = torch.eye(3, device=self.dev).expand(1, len(MVN_SEGMENTS), 3, 3)
                 rest = self.acts[0].rig.pose(eye, torch.zeros(1, 3, device=self.dev), True).vertices[0].cpu().numpy()
             self.collide = CollisionTerm(model.faces.cpu().numpy(), band_m=0.03, pad_m=0.01,
-                                         guard_vertices=torso_vertices(model), bvh_points=rest,
+                                         guard_vertices=torso_vertices(model), bvh_points=rest, threads=threads,
                                          parts=self.acts[0].rig.opening_groups)  # fmt: skip
 
     def segment(self, wins: list[tuple[int, int, int]], n_windows: int, say: Callable[[str], None],
@@ -1072,14 +1087,14 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     if T < 2:
         raise FitError(f"the take has {T} frame(s) on the timeline; fitting needs at least 2")
     t_start = time.perf_counter()
-    fitter = _Fitter(model, inputs, fps, cfg)
-    acts, collide, dev = fitter.acts, fitter.collide, fitter.dev
     segments = layout(T, cfg)
     n_windows = sum(len(seg) for seg in segments)
     n_workers = fit_workers(len(segments), cfg) if workers is None else max(1, min(int(workers), len(segments)))
     if n_workers > 1 and not _workers_build_it(model):
         say(f"fit: {n_workers} workers asked for, but the body model is not the toolkit's float32 anny; fitting in this process")
         n_workers = 1
+    fitter = _Fitter(model, inputs, fps, cfg, threads=collision_threads(n_workers))
+    acts, collide, dev = fitter.acts, fitter.collide, fitter.dev
     if n_workers > 1:
         from dualhuman_builder.fit.workers import fit_in_workers
 

@@ -43,7 +43,7 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
     this process as soon as both its segments are done, between its own segments); and the largest
     peak resident memory (MB, ``VmHWM``) a worker reported (0: none finished a segment). ``say``
     gets the progress lines (from any of them, one at a time)."""
-    from dualhuman_builder.fit.fitter import _seam
+    from dualhuman_builder.fit.fitter import _seam, collision_threads
 
     cfg = fitter.cfg
     lock = threading.Lock()
@@ -66,7 +66,8 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
 
     with scratch_with_children("dualhuman-fit-") as (tmp, procs):
         with open(tmp / "job.pkl", "wb") as f:
-            pickle.dump({"inputs": inputs, "fps": fps, "cfg": cfg, "segments": segments, "n_windows": n_windows}, f)
+            pickle.dump({"inputs": inputs, "fps": fps, "cfg": cfg, "segments": segments, "n_windows": n_windows,
+                         "collision_threads": collision_threads(workers)}, f)  # fmt: skip
         env = child_env()
         for k in range(workers - 1):
             with open(tmp / f"stderr_{k}.txt", "wb") as err:
@@ -151,7 +152,7 @@ def _main(argv: list[str]) -> None:
     cfg = job["cfg"]
     if cfg.torch_threads > 0:
         torch.set_num_threads(int(cfg.torch_threads))
-    fitter = _Fitter(get_body_model(cfg.device), job["inputs"], job["fps"], cfg)
+    fitter = _Fitter(get_body_model(cfg.device), job["inputs"], job["fps"], cfg, threads=job["collision_threads"])
     proto.write("ready\n")
     for line in sys.stdin:
         i = int(line)
