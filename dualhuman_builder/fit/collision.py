@@ -394,7 +394,7 @@ def _kept_signs(
     l = l0[r, v]
     eps = 1.0e-6 + 1.0e-6 * l  # float32 rounding of the stored bound
     left = l - (dq + whole[i, body])
-    if left <= eps:  # the part the vertex is nearest to moved too far: per part, its own move or its box
+    if left <= eps:  # the plain bound fails: per part, its own move or its box
         left = float(1.0e30)
         for g in range(most.shape[2]):
             x = l - (dq + most[i, body, g])

@@ -694,11 +694,12 @@ class _Fitter:
     (:func:`layout`), in this process or in a worker (:mod:`dualhuman_builder.fit.workers`)."""
 
     def __init__(self, model, inputs: list[ActorInput], fps: float, cfg: FitConfig, threads: int | None = None):
-        """``threads``: the collision term's query threads (None: its default, the CPUs up to 8)."""
+        """``threads``: the collision term's query threads (None: its default, the CPUs up to 8); worker
+        processes build theirs with the same (:mod:`~dualhuman_builder.fit.workers`)."""
         from dualhuman_builder.fit.collision import CollisionTerm
         from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
 
-        self.cfg, self.fps, self.T = cfg, fps, len(inputs[0].seg_rot)
+        self.cfg, self.fps, self.T, self.threads = cfg, fps, len(inputs[0].seg_rot), threads
         soles = sole_vertices(model)
         slots = max(len(inp.trk_segment) for inp in inputs)
         self.acts = [_Actor(model, inp, fps, cfg, soles, slots) for inp in inputs]

@@ -43,7 +43,7 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
     this process as soon as both its segments are done, between its own segments); and the largest
     peak resident memory (MB, ``VmHWM``) a worker reported (0: none finished a segment). ``say``
     gets the progress lines (from any of them, one at a time)."""
-    from dualhuman_builder.fit.fitter import _seam, collision_threads
+    from dualhuman_builder.fit.fitter import _seam
 
     cfg = fitter.cfg
     lock = threading.Lock()
@@ -67,7 +67,7 @@ def fit_in_workers(fitter, inputs: list, fps: float, segments: list, n_windows: 
     with scratch_with_children("dualhuman-fit-") as (tmp, procs):
         with open(tmp / "job.pkl", "wb") as f:
             pickle.dump({"inputs": inputs, "fps": fps, "cfg": cfg, "segments": segments, "n_windows": n_windows,
-                         "collision_threads": collision_threads(workers)}, f)  # fmt: skip
+                         "collision_threads": fitter.threads}, f)  # fmt: skip
         env = child_env()
         for k in range(workers - 1):
             with open(tmp / f"stderr_{k}.txt", "wb") as err:
