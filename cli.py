@@ -695,7 +695,8 @@ def _take_options(f):
                           "the spot; `sim://calibration` simulates one): each tracker worn there by the same actor on "
                           "the same segment keeps the mount solved there. A take whose actors hardly move then still "
                           "gets its heading and its trackers' offsets right; a tracker strapped again since is found "
-                          "and solved afresh.")(f)
+                          "and solved afresh. The trackers' lag behind the suits (the session's latencies) is averaged "
+                          "with the one measured there, unless it moved by over 3 ms (a warning).")(f)
     f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
     return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
 
@@ -715,8 +716,9 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
     otherwise absorb that). Writes sync.npz and sync.json (estimates with 1-sigma uncertainties).
 
     An actor who hardly turns a segment (standing still while patted, shaking hands) leaves the
-    trackers' mounting rotations and shared offset to where the protocol says they are strapped;
-    start the session with a calibration take and pass it with --mounts-from.
+    trackers' mounting rotations and shared offset to where the protocol says they are strapped,
+    and a short take measures the trackers' lag less well than a long one; start the session with
+    a calibration take and pass it with --mounts-from (mounts and lag carry over).
 
     Examples:  dualhuman sync WS --take T001
                dualhuman sync WS --take T002 --mounts-from T001

@@ -23,9 +23,10 @@ Writes ``benchmarks/results/fit_accuracy.json``.
 
 ``--calibration`` follows the session protocol: per device seed it also records (or, with
 ``--keep``, reuses ``DIR/calibration-<seed>/``) a ``calibration`` take of the same devices, syncs
-it (printing its own mounts' errors against the simulated ones), and carries its tracker mounts into every take's sync
+it (printing its own mounts' errors against the simulated ones), and carries its tracker mounts and lags into every take's sync
 (:func:`~dualhuman_builder.sync.timeline.synchronise` ``mounts_from``; ``dualhuman sync
---mounts-from`` in a workspace). The mount columns are then the calibration take's mounts. Writes
+--mounts-from`` in a workspace). The mount columns are then the calibration take's mounts, and the
+clock column the take's own lag averaged with the calibration's. Writes
 ``fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
 """
 
@@ -116,7 +117,7 @@ def main() -> None:
     ap.add_argument("--compare-exact", action="store_true",
                     help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
     ap.add_argument("--calibration", action="store_true",
-                    help="carry the tracker mounts of a calibration take per device seed into each take's sync")
+                    help="carry the tracker mounts and lags of a calibration take per device seed into each take's sync")
     args = ap.parse_args()
     if args.out is None:
         name = "fit_accuracy_calibrated.json" if args.calibration else "fit_accuracy.json"

@@ -304,10 +304,24 @@ def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, m
         for k, serial in enumerate(mine.serials):  # kept as solved on the calibration take
             j = theirs.serials.index(serial)
             assert np.array_equal(mine.mounts.rotations[k], theirs.mounts.rotations[j])
-    errs = mount_errors(sync, simulate_studio(scene.sequence, seed=1))
+    studio = simulate_studio(scene.sequence, seed=1)
+    errs = mount_errors(sync, studio)
     assert errs["rotation_deg"].max() < 0.8, errs
     alone = synchronise(read_columns(take), fps=15.0).report["common_offset"]
     assert all(alone[n]["std_mm"] > 2 * report["common_offset"][n]["std_mm"] for n in alone), alone
+    # the trackers' lag behind the suits (a session's latencies) is averaged with the calibration's
+    key = next(k for k in report["lags"] if k.startswith("source:"))
+    lag = report["lags"][key]
+    assert lag["carried_from"] == "CAL" and lag["latency_changed"] is False, lag
+    assert lag["carried_lag_ms"] == cal.report["lags"][key]["lag_ms"]
+    assert min(lag["own_lag_ms"], lag["carried_lag_ms"]) < lag["lag_ms"] < max(lag["own_lag_ms"], lag["carried_lag_ms"])
+    clock = report["clocks"][key]
+    assert abs(clock["offset_s"] - studio.trackers[0].clock.offset_s) < 1e-3, clock
+    # a calibration 10 ms away: the latency changed; the take keeps its own lag, with a warning
+    cal.report["lags"][key]["lag_ms"] += 10.0
+    moved = synchronise(read_columns(take), fps=15.0, mounts_from=cal, mounts_from_take="CAL").report
+    assert moved["lags"][key]["lag_ms"] == lag["own_lag_ms"] and moved["lags"][key]["latency_changed"] is True
+    assert any("latency changed" in w for w in moved["warnings"]), moved["warnings"]
     # a calibration take that is not in the workspace, or the take itself: clear errors
     res = CliRunner().invoke(cli.main, ["sync", str(ws_root), "--take", "SHAKE", "--mounts-from", "NOPE"])
     assert res.exit_code != 0 and "no take 'NOPE'" in res.output

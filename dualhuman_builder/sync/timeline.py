@@ -19,7 +19,8 @@ Trackers
     calibration take of the same session), each tracker found there by serial, on the same
     segment of the same actor, keeps that take's mount
     (:class:`~dualhuman_builder.sync.mount.CarriedMounts`): a take whose actors hardly move then
-    still gets its heading and its trackers' shared offset right.
+    still gets its heading and its trackers' shared offset right. The calibration's lag per
+    tracker source is the session's latency difference, and is averaged with the take's own.
 
 Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
 ``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
@@ -200,6 +201,24 @@ def carry_mounts(calibration: SyncResult, actor: str, serials, segments, source:
     return CarriedMounts.from_calibration(cal.mounts, list(zip(cal.serials, cal.segments)), list(zip(serials, segments)), source)
 
 
+def _carried_lags(calibration: SyncResult) -> dict:
+    """Tracker source -> :class:`~dualhuman_builder.sync.lag.LagEstimate` that ``calibration`` (a
+    calibration take's :class:`SyncResult`) used for it (its report's ``lags``); sources it measured
+    no lag for are left out."""
+    from dualhuman_builder.sync.lag import LagEstimate
+
+    out = {}
+    for key, v in (calibration.report.get("lags") or {}).items():
+        if not key.startswith("source:") or not isinstance(v, dict) or v.get("lag_ms") is None:
+            continue
+        lag = float(v["lag_ms"]) * 1e6
+        std = float(v["std_ms"]) * 1e6 if v.get("std_ms") is not None else float("nan")
+        if np.isfinite(lag):
+            out[key[len("source:"):]] = LagEstimate(lag_ns=lag, std_ns=std, peak=float(v.get("peak", float("nan"))),
+                                                    n_windows=0, n_estimates=1)  # fmt: skip
+    return out
+
+
 def _report_carried(report: dict, actor: str, serials, carried, mounts, source: str, say) -> None:
     """``report["mounts_from"]``: which of ``actor``'s trackers kept the calibration take's mount,
     and warnings for those that could not."""
@@ -237,9 +256,11 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     the suit's limb errors to the mounts and the drift, as before. ``mounts_from``: the
     :class:`SyncResult` of a calibration take of the same session (named ``mounts_from_take`` in
     the report) whose mounts carry over (:func:`carry_mounts`); the report's ``mounts_from`` says
-    which trackers kept theirs, and warns of those found strapped again or missing there."""
+    which trackers kept theirs, and warns of those found strapped again or missing there. Its
+    tracker lags carry over too, averaged with this take's own
+    (:func:`~dualhuman_builder.sync.lag.with_carried_lag`; the report's ``lags`` keep both)."""
     from dualhuman_builder.sync.clock import fit_clock
-    from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed
+    from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed, with_carried_lag
     from dualhuman_builder.sync.mount import SuitChain, calibrate_mounts
 
     say = progress or (lambda _m: None)
@@ -311,14 +332,34 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                                     "peak": round(float(est.peak), 4)}  # fmt: skip
             lags_by_source.setdefault(t.source, []).append(est)
     lag_s = {}
-    for source, ests in lags_by_source.items():
-        comb = combine_lags(ests)
+    carried_lags = _carried_lags(mounts_from) if mounts_from is not None else {}
+    for source in sorted({t.source for t in trackers}):
+        ests = lags_by_source.get(source, [])
+        own = combine_lags(ests) if ests else None
+        entry: dict[str, Any] = {"trackers": len(ests)}
+        comb = own
+        if source in carried_lags:
+            comb, changed = with_carried_lag(own, carried_lags[source])
+            took = mounts_from_take or "the calibration take"
+            c = carried_lags[source]
+            entry.update({"own_lag_ms": _ms(own.lag_ns * 1e-9) if own else None,
+                          "own_std_ms": _ms(own.std_ns * 1e-9) if own else None,
+                          "carried_lag_ms": _ms(c.lag_ns * 1e-9), "carried_std_ms": _ms(c.std_ns * 1e-9),
+                          "carried_from": took, "latency_changed": changed})  # fmt: skip
+            if changed:
+                report.setdefault("warnings", []).append(
+                    f"trackers of source {source!r} lag the suits by {own.lag_ns * 1e-6:.2f} ms here against "
+                    f"{c.lag_ns * 1e-6:.2f} ms in {took}: the latency changed (a source restarted?); this take's own lag is used")
+            own_txt = f"{own.lag_ns * 1e-6:.2f} ms here" if own else "none measured here"
+            say(f"trackers of {source!r}: lag {comb.lag_ns * 1e-6:.2f} ms ({own_txt}, {c.lag_ns * 1e-6:.2f} ms in {took})")
+        if comb is None:
+            continue
         lag_s[source] = comb.lag_ns * 1e-9
-        report["lags"][f"source:{source}"] = {"lag_ms": _ms(lag_s[source]), "std_ms": _ms(comb.std_ns * 1e-9), "trackers": len(ests)}
+        report["lags"][f"source:{source}"] = {"lag_ms": _ms(lag_s[source]), "std_ms": _ms(comb.std_ns * 1e-9), **entry}
     sources_without = {t.source for t in trackers} - set(lag_s)
     if sources_without:
-        report["warnings"] = [f"no tracker of source {s!r} moved enough to measure its lag; host-clock alignment only"
-                              for s in sorted(sources_without)]  # fmt: skip
+        report.setdefault("warnings", []).extend(
+            f"no tracker of source {s!r} moved enough to measure its lag; host-clock alignment only" for s in sorted(sources_without))
 
     # ---- clocks against the timeline (device time at timeline 0 and drift), after the lag
     for s in [*suits, *trackers]:
