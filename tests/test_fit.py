@@ -239,9 +239,11 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev_free["root_mm"] > ev["root_mm"]
 
 
-def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
+def test_sync_warns_when_the_heading_or_the_root_is_uncertain(recorded, monkeypatch):
     """The sync report carries each actor's heading and its 1-sigma, and warns (naming the actor
-    and the calibration take to carry mounts from) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``."""
+    and the calibration take to carry mounts from) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``;
+    likewise for the trackers' shared offset (where the root sits in the body) over
+    ``COMMON_OFFSET_WARN_MM``: the handshake's actors turn too few segments to pin it (~14 mm)."""
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.sync import timeline
 
@@ -249,7 +251,10 @@ def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
     columns = read_columns(take)
 
     def heading_warnings(report):
-        return [w for w in report.get("warnings", []) if "--mounts-from" in w]
+        return [w for w in report.get("warnings", []) if "--mounts-from" in w and ": heading" in w]
+
+    def offset_warnings(report):
+        return [w for w in report.get("warnings", []) if "--mounts-from" in w and "shared offset" in w]
 
     report = synchronise(columns, fps=15.0).report
     stds = {name: h["std_deg"] for name, h in report["heading"].items()}
@@ -261,6 +266,13 @@ def test_sync_warns_when_the_heading_is_uncertain(recorded, monkeypatch):
     assert len(warned) == 2
     for name, std in stds.items():
         assert any(w.startswith(f"{name}: heading") and f"{std:.1f} deg" in w for w in warned), warned
+    offsets = {name: c["std_mm"] for name, c in report["common_offset"].items()}
+    assert all(s > timeline.COMMON_OFFSET_WARN_MM for s in offsets.values()), offsets
+    for name, std in offsets.items():
+        assert any(w.startswith(f"{name}: the trackers' shared offset") and f"{std:.1f} mm" in w
+                   for w in offset_warnings(report)), report["warnings"]
+    monkeypatch.setattr(timeline, "COMMON_OFFSET_WARN_MM", 2 * max(offsets.values()))
+    assert offset_warnings(synchronise(columns, fps=15.0).report) == []
 
 
 def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, model, tmp_path):
@@ -309,6 +321,7 @@ def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, m
     assert errs["rotation_deg"].max() < 0.8, errs
     alone = synchronise(read_columns(take), fps=15.0).report["common_offset"]
     assert all(alone[n]["std_mm"] > 2 * report["common_offset"][n]["std_mm"] for n in alone), alone
+    assert not any("shared offset" in w for w in report.get("warnings", [])), report["warnings"]  # pinned by CAL
     # the trackers' lag behind the suits (a session's latencies) is averaged with the calibration's
     key = next(k for k in report["lags"] if k.startswith("source:"))
     lag = report["lags"][key]

@@ -24,7 +24,7 @@ import numpy as np
 from dualhuman_builder.errors import WorkspaceError
 from dualhuman_builder.fit.fitter import FitConfig
 
-STAGE_VERSION = "3"  # 2: heading from the tracker constellation (mount sites); 3: the suit's segment misalignments
+STAGE_VERSION = "4"  # 2: heading from the tracker constellation (mount sites); 3: the suit's segment misalignments; 4: the calibration take's tracker lag carried (and the fit's rounds since 3)
 
 
 def _take_file(ws, take: str):

@@ -56,6 +56,9 @@ MIN_ANGULAR_MOTION = 0.02
 MIN_LINEAR_MOTION = 0.02
 #: A heading (suit world in the tracker world) less certain than this (1-sigma, deg) is reported.
 HEADING_WARN_DEG = 1.0
+#: The trackers' shared offset on their segments (where the root sits in the body) less certain
+#: than this (1-sigma, mm) is reported: the fit's root inherits it (the goal is 10 mm).
+COMMON_OFFSET_WARN_MM = 8.0
 
 
 class SyncError(DualhumanError):
@@ -429,6 +432,11 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                         f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
                         "turns, so it rests on where the trackers are strapped; record the session's calibration take (a bow, a "
                         "twist, a turn on the spot) and sync with --mounts-from it")
+                if np.isfinite(c_std) and c_std * 1000 > COMMON_OFFSET_WARN_MM and not a.mounts.carried.any():
+                    report.setdefault("warnings", []).append(
+                        f"{name}: the trackers' shared offset on their segments known to {round(c_std * 1000, 2):.1f} mm (1-sigma) "
+                        "only, and the body's root with it: the actor turns too few segments to tell it from the suit's "
+                        "drift; record the session's calibration take and sync with --mounts-from it")
                 say(f"{name}: {K} trackers calibrated on their segments")
         out.append(a)
     return SyncResult(float(fps), times, out, report)
