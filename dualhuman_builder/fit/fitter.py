@@ -888,6 +888,12 @@ class _Fitter:
                             moving = np.ones(c1 - c0, bool)
                         elif what == "all" and cfg.collision_hold_settled:
                             over = (best[2] > cfg.collision_tolerance_m) | (best[3] > cfg.collision_share_tolerance)
+                            if not over.any():
+                                # the best answer is within the tolerances already: the skeleton pass left only
+                                # shallow contacts and the pass after it was undone (deeper); nothing to move
+                                settled = True
+                                break
+                            # (frames held so far kept the depths that let them be held, so `over` lies in `moving`)
                             moving = moving & _dilate(over, _SMOOTH_REACH)
                         rows_m = np.flatnonzero(moving)
                         frozen_t = None if moving.all() else torch.as_tensor(np.flatnonzero(~moving), device=dev)
