@@ -720,8 +720,10 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
     and a short take measures the trackers' lag less well than a long one; start the session with
     a calibration take and pass it with --mounts-from (mounts and lag carry over).
 
-    Examples:  dualhuman sync WS --take T001
-               dualhuman sync WS --take T002 --mounts-from T001
+    \b
+    Examples:
+      dualhuman sync WS --take T001
+      dualhuman sync WS --take T002 --mounts-from T001   # T001: the session's calibration take
     """
     from dualhuman_builder.fit.stages import run_sync
     from dualhuman_builder.workspace import Workspace
