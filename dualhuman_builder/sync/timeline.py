@@ -347,7 +347,8 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
             c = carried_lags[source]
             entry.update({"own_lag_ms": _ms(own.lag_ns * 1e-9) if own else None,
                           "own_std_ms": _ms(own.std_ns * 1e-9) if own else None,
-                          "carried_lag_ms": _ms(c.lag_ns * 1e-9), "carried_std_ms": _ms(c.std_ns * 1e-9),
+                          "carried_lag_ms": _ms(c.lag_ns * 1e-9),
+                          "carried_std_ms": _ms(c.std_ns * 1e-9) if np.isfinite(c.std_ns) else None,
                           "carried_from": took, "latency_changed": changed})  # fmt: skip
             if changed:
                 report.setdefault("warnings", []).append(
