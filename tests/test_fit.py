@@ -386,6 +386,26 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
     assert np.degrees((expected.inv() * got).magnitude()).max() < 1e-4 and np.degrees(np.linalg.norm(eps)) > 0.05
 
 
+def _script_checks(monkeypatch, script) -> list:
+    """Script what the fit's checks read: :meth:`CollisionTerm.penetration` runs for real, then
+    ``script(n, keys, out)`` (``n``: 1 for the first check, ``keys`` its frames as ints, ``out`` the real
+    reading) returns the entries of ``out`` to read instead (``max_depth_m``, ``share``), or None.
+    Returns the list, filled as the fit runs, of each check's keys."""
+    from dualhuman_builder.fit import collision
+
+    real = collision.CollisionTerm.penetration
+    checks = []
+
+    def read(self, va, vb, keys=None):
+        out = real(self, va, vb, keys)
+        checks.append([int(k) for k in keys])
+        out.update(script(len(checks), checks[-1], out) or {})
+        return out
+
+    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
+    return checks
+
+
 def _overlapping_pair(T: int, dx: float = 0.05) -> list:
     """Fit inputs of two actors in the rest pose for ``T`` frames, pelvises ``dx`` metres apart
     along x (5 cm: the bodies overlap, so the collision pass runs), no trackers."""
@@ -441,15 +461,13 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
     # the rounds only (the hands' pass, which comes first, is undone by the same rule)
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=2, hand_opening=False,
                     collision_hold_contacts=False)  # fmt: skip
-    real = collision.CollisionTerm.penetration
     calls, seen = [], []
 
-    def deeper_after_the_first_pass(self, va, vb, keys=None):
-        out = real(self, va, vb, keys)
+    def deeper_after_the_first_pass(n, keys, out):
         calls.append(float(out["max_depth_m"].max()))
-        if len(calls) == 2:  # 1: after the skeleton pass, 2: after collision round 1, 3: round 2 (the summary reuses it)
-            out["max_depth_m"] = np.full_like(out["max_depth_m"], calls[0] + 0.010)
-        return out
+        if n == 2:  # 1: after the skeleton pass, 2: after collision round 1, 3: round 2 (the summary reuses it)
+            return {"max_depth_m": np.full_like(out["max_depth_m"], calls[0] + 0.010)}
+        return None
 
     real_call = collision.CollisionTerm.__call__
 
@@ -457,7 +475,7 @@ def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch)
         seen.append((len(calls), va.detach().clone()))
         return real_call(self, va, vb, keys, points)
 
-    monkeypatch.setattr(collision.CollisionTerm, "penetration", deeper_after_the_first_pass)
+    _script_checks(monkeypatch, deeper_after_the_first_pass)
     monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
     s = fit_actors(model, inputs, 15.0, cfg).summary
     assert s["collision_frames"] == T and s["collision_diverged"] == [] and len(calls) == 3
@@ -483,15 +501,10 @@ def test_frames_the_full_rounds_start_deep_are_weighted_a_step_ahead(model, monk
     T = 2
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=2, hand_opening=False,
                     collision_hold_contacts=False, collision_deep_m=deep_m)  # fmt: skip
-    real_pen, real_call = collision.CollisionTerm.penetration, collision.CollisionTerm.__call__
-    checks, weights = [], []
-
-    def read(self, va, vb, keys=None):
-        out = real_pen(self, va, vb, keys)
-        checks.append(1)
-        if len(checks) <= 2:  # after the skeleton pass and after round 1 (so that round 2 runs)
-            out["max_depth_m"] = np.array([0.015, 0.005])
-        return out
+    real_call = collision.CollisionTerm.__call__
+    weights = []
+    # after the skeleton pass and after round 1 (so that round 2 runs)
+    checks = _script_checks(monkeypatch, lambda n, keys, out: {"max_depth_m": np.array([0.015, 0.005])} if n <= 2 else None)
 
     def watch(self, va, vb, keys=None, points=None):
         r = real_call(self, va, vb, keys, points)
@@ -499,7 +512,6 @@ def test_frames_the_full_rounds_start_deep_are_weighted_a_step_ahead(model, monk
             r.loss.register_hook(lambda g, n=len(checks): weights.append((n, g.detach().clone())))
         return r
 
-    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
     monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
     s = fit_actors(model, _overlapping_pair(T, dx=0.02), 15.0, cfg).summary  # 2 cm: still in contact in round 2
     assert s["collision_rounds_used"] == 2 and s["collision_diverged"] == []
@@ -524,17 +536,12 @@ def test_a_round_moves_only_the_frames_left_over_a_tolerance_and_their_neighbour
     T = 8
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=3, hand_opening=False,
                     collision_hold_contacts=False, collision_hold_settled=hold)  # fmt: skip
-    real_pen, real_call = collision.CollisionTerm.penetration, collision.CollisionTerm.__call__
-    checks, evaluated, after = [], [], []  # after: the optimised tensors after each L-BFGS run
+    real_call = collision.CollisionTerm.__call__
+    evaluated, after = [], []  # after: the optimised tensors after each L-BFGS run
 
-    def read(self, va, vb, keys=None):
-        out = real_pen(self, va, vb, keys)
-        keys = [int(k) for k in keys]
-        checks.append(keys)
-        depth = {1: 0.015, 2: 0.0}.get(len(checks), 0.0)
-        out["max_depth_m"] = np.array([0.005 if (len(checks) == 2 and k == 6) else depth for k in keys])
-        out["share"] = np.zeros(len(keys))
-        return out
+    def read(n, keys, out):
+        depth = {1: 0.015, 2: 0.0}.get(n, 0.0)
+        return {"max_depth_m": np.array([0.005 if (n == 2 and k == 6) else depth for k in keys]), "share": np.zeros(len(keys))}
 
     def watch(self, va, vb, keys=None, points=None):
         evaluated.append((len(checks), [int(k) for k in keys]))
@@ -547,7 +554,7 @@ def test_a_round_moves_only_the_frames_left_over_a_tolerance_and_their_neighbour
         after.append([p.detach().clone() for p in self.param_groups[0]["params"]])
         return out
 
-    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
+    checks = _script_checks(monkeypatch, read)
     monkeypatch.setattr(collision.CollisionTerm, "__call__", watch)
     monkeypatch.setattr(torch.optim.LBFGS, "step", step)
     s = fit_actors(model, _overlapping_pair(T, dx=0.02), 15.0, cfg).summary
@@ -570,22 +577,11 @@ def test_a_window_left_within_the_tolerances_when_a_pass_is_undone_stops_there(m
     answer, the skeleton pass's, is then within the tolerances: the rounds stop there, with nothing
     to move (a handshake of the accuracy benchmark's seed 4 went on to a round of no frames and
     failed: "verts_a is empty")."""
-    from dualhuman_builder.fit import collision
-
     T = 6
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=3, hand_opening=False,
                     collision_hold_contacts=False, collision_hold_settled=True)  # fmt: skip
-    real_pen = collision.CollisionTerm.penetration
-    checks = []
-
-    def read(self, va, vb, keys=None):
-        out = real_pen(self, va, vb, keys)
-        checks.append([int(k) for k in keys])
-        out["max_depth_m"] = np.full(len(keys), 0.001 if len(checks) == 1 else 0.0015)
-        out["share"] = np.zeros(len(keys))
-        return out
-
-    monkeypatch.setattr(collision.CollisionTerm, "penetration", read)
+    checks = _script_checks(monkeypatch, lambda n, keys, out: {"max_depth_m": np.full(len(keys), 0.001 if n == 1 else 0.0015),
+                                                                 "share": np.zeros(len(keys))})  # fmt: skip
     s = fit_actors(model, _overlapping_pair(T, dx=0.02), 15.0, cfg).summary
     assert len(checks) == 2 and checks[1] == list(range(T))  # the skeleton pass's check, round 1's
     assert s["collision_rounds_used"] == 1 and len(s["collision_worsened"]) == 1, s["collision_worsened"]
@@ -599,23 +595,17 @@ def test_a_window_within_the_depth_tolerance_but_with_many_shallow_vertices_goes
     ``collision_share_tolerance`` of the vertices inside the other body (a palm resting a millimetre
     deep: within the depth, over the issue's 0.1 % share). Here round 1 is read as leaving 1 mm and
     0.2 %, round 2 as 1 mm and none."""
-    from dualhuman_builder.fit import collision
-
     T = 2
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=3, collision_rounds=4, hand_opening=False,
                     collision_share_tolerance=share_tolerance, collision_hold_contacts=False)  # fmt: skip
-    real = collision.CollisionTerm.penetration
-    calls = []
 
-    def shallow_but_wide(self, va, vb, keys=None):
-        out = real(self, va, vb, keys)
-        calls.append(1)
-        if len(calls) in (2, 3):  # 1: after the skeleton pass, 2: after round 1, 3: after round 2
-            out["max_depth_m"] = np.full_like(out["max_depth_m"], 0.001)
-            out["share"] = np.full_like(out["share"], 0.002 if len(calls) == 2 else 0.0)
-        return out
+    def shallow_but_wide(n, keys, out):
+        if n in (2, 3):  # 1: after the skeleton pass, 2: after round 1, 3: after round 2
+            return {"max_depth_m": np.full_like(out["max_depth_m"], 0.001),
+                    "share": np.full_like(out["share"], 0.002 if n == 2 else 0.0)}  # fmt: skip
+        return None
 
-    monkeypatch.setattr(collision.CollisionTerm, "penetration", shallow_but_wide)
+    _script_checks(monkeypatch, shallow_but_wide)
     s = fit_actors(model, _overlapping_pair(T), 15.0, cfg).summary
     assert s["collision_rounds_used"] == rounds and s["collision_worsened"] == []
 
