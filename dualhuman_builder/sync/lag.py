@@ -370,8 +370,8 @@ def with_carried_lag(own: LagEstimate | None, carried: LagEstimate, changed_ns: 
     The lag is the difference of two transport latencies (the trackers' and the suits'), a property
     of the devices and the network that holds for a session, so a calibration take -- long, every
     segment turning -- measures it better than a short take whose actors hardly move (seconds of
-    speeds with a correlated suit noise: ~0.5 ms RMS on the accuracy benchmark's 5-second takes,
-    over 1 ms on some). The two are averaged with weights ``1 / (std^2 + floor_ns^2)`` (a
+    speeds, and position-speed estimates that share one error within a take: ~0.4 ms RMS on the
+    accuracy benchmark's 3-6-second takes, 1.2 ms on one). The two are averaged with weights ``1 / (std^2 + floor_ns^2)`` (a
     non-finite ``std_ns`` counts as ``changed_ns``); the result's ``std_ns`` is ``1 / sqrt(sum w)``.
     When ``own`` lies farther than ``changed_ns`` (default 3 ms) from ``carried``, the latency
     changed since the calibration (a restarted or re-configured source): ``own`` is returned alone
