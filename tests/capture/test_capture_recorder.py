@@ -23,8 +23,8 @@ from dualhuman_builder.capture.sources import open_source
 from dualhuman_builder.rig import RigActor
 from dualhuman_builder.sim.devices import Faults, UdpPlayer, tracker_packets
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests" / "capture"))
 
 from test_capture_vive import twelve_trackers  # noqa: E402
 
@@ -137,7 +137,7 @@ _DISK_FULL = textwrap.dedent("""
 
 def test_disk_full_mid_take_stops_cleanly_and_keeps_the_data(tmp_path):
     path = tmp_path / "full.mcap"
-    out = subprocess.run([sys.executable, "-c", _DISK_FULL.format(tests=str(ROOT / "tests"), path=str(path))],
+    out = subprocess.run([sys.executable, "-c", _DISK_FULL.format(tests=str(ROOT / "tests" / "capture"), path=str(path))],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)  # fmt: skip
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")]
     assert line, out.stderr[-3000:]

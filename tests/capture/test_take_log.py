@@ -28,7 +28,7 @@ from dualhuman_builder.capture.replay import same_sample
 from dualhuman_builder.capture.sources import RawPacket
 from dualhuman_builder.errors import FormatError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def synthetic_samples(n: int = 200, seed: int = 0) -> list:
@@ -181,7 +181,7 @@ _WRITER_SCRIPT = textwrap.dedent("""
 
 def test_kill_minus_9_keeps_every_flushed_chunk_and_repair_rebuilds_the_index(tmp_path):
     path = tmp_path / "crash.mcap"
-    script = _WRITER_SCRIPT.format(tests=str(ROOT / "tests"), path=str(path))
+    script = _WRITER_SCRIPT.format(tests=str(ROOT / "tests" / "capture"), path=str(path))
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     flushed = []
     try:
@@ -237,7 +237,7 @@ _FULL_DISK_SCRIPT = textwrap.dedent("""
 
 def test_a_full_disk_stops_writing_with_a_clear_error_and_keeps_what_was_written(tmp_path):
     path = tmp_path / "full.mcap"
-    out = subprocess.run([sys.executable, "-c", _FULL_DISK_SCRIPT.format(tests=str(ROOT / "tests"), path=str(path))],
+    out = subprocess.run([sys.executable, "-c", _FULL_DISK_SCRIPT.format(tests=str(ROOT / "tests" / "capture"), path=str(path))],
                          capture_output=True, text=True, cwd=ROOT, timeout=120)  # fmt: skip
     assert "stopped" in out.stdout, out.stderr
     assert "file-size limit was reached" in out.stdout

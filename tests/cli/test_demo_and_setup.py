@@ -13,7 +13,7 @@ from dualhuman_builder.sim.scenes import Scene, contract_failures, describe_scen
 from dualhuman_builder.tracks import InteractionSequence
 from dualhuman_builder.workspace import Workspace
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_setup_script_does_no_work_the_second_time():

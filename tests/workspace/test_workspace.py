@@ -14,7 +14,7 @@ from dualhuman_builder.paths import RIGS_DIR
 from dualhuman_builder.workspace import CATALOG_NAME, Workspace
 from dualhuman_builder.workspace.stages import STAGING_PREFIX
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_init_creates_wal_catalog_and_reuses_it(tmp_path):
