@@ -1,6 +1,6 @@
 """Collision machinery: time per frame pair and depth accuracy of each way to compute penetration.
 
-Compares, through :class:`~dualhuman_builder.fit.collision.CollisionTerm` (same broad phase, same
+Compares, through :class:`~dualhuman_builder.geometry.collision.CollisionTerm` (same broad phase, same
 query vertices, same outputs):
 
 * warp mesh queries (``wp.Mesh`` per body, refit per frame), pseudonormal sign, with a banded
@@ -168,7 +168,7 @@ def main(argv=None):
     torch.set_num_threads(args.torch_threads)
 
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.geometry.collision import CollisionTerm
 
     model = get_body_model()
     scenes, fs = build_scenes(model)

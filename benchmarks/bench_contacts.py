@@ -87,7 +87,8 @@ def gil_held_by_igl(topo, A, B) -> bool:
 def bench_scene(kind, sc, topo, args) -> dict:
     import igl
 
-    from dualhuman_builder.contacts import contact_frame, contacts_for_scene, contacts_from_vertices
+    from dualhuman_builder.contacts import contact_frame, contacts_from_vertices
+    from dualhuman_builder.evaluation.contacts import contacts_for_scene
 
     band, thr = args.band, args.threshold
     va_all, vb_all = (a.vertices() for a in sc.sequence.actors)
@@ -174,7 +175,7 @@ def bench_scene(kind, sc, topo, args) -> dict:
         out["trimesh_unavailable"] = f"{e}"
 
     # (c) warp PairDistance (the scene generator's ground truth)
-    from dualhuman_builder.contacts.distance import get_pair_distance
+    from dualhuman_builder.geometry.distance import get_pair_distance
 
     pair = get_pair_distance()
     pair(va[0], vb[0], band)

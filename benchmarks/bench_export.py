@@ -1,7 +1,7 @@
 """Export stage and training loaders: sequences/min of ``export_dataset``, windows/s of the loaders.
 
 Data: ground-truth scenes (``--types``, seed 0, ``--fps``, ``--scene-seconds`` long; cached in
-``--scene-cache``), their contacts from :func:`~dualhuman_builder.contacts.contacts_for_scene`
+``--scene-cache``), their contacts from :func:`~dualhuman_builder.evaluation.contacts.contacts_for_scene`
 (once per scene), cut into clips of ``--seconds`` at evenly spread start frames (clip ``k`` from
 scene ``k mod types``); each clip's contacts are the scene's, sliced (events clipped to the clip).
 Every timed run gets freshly built tracks, so the export pays the body model for the joints as
@@ -374,7 +374,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     cache = args.scene_cache if str(args.scene_cache) not in ("", ".") else None
 
-    from dualhuman_builder.contacts import contacts_for_scene
+    from dualhuman_builder.evaluation.contacts import contacts_for_scene
     from dualhuman_builder.export.layout import export_dataset
 
     load0 = os.getloadavg()[0]

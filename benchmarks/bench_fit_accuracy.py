@@ -54,7 +54,7 @@ COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetrat
 
 def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model):
     """``(take, scene)``: the take kept in ``tmp/<type>-<seed>/``, or a new recording there."""
-    from dualhuman_builder.fit.evaluate import record_simulated_take
+    from dualhuman_builder.evaluation.fit import record_simulated_take
     from dualhuman_builder.sim.scenes import Scene
 
     folder = tmp / f"{scene_type}-{seed}"
@@ -69,9 +69,9 @@ def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
 
 def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False,
              mounts_from=None) -> dict:  # fmt: skip
-    from dualhuman_builder.fit.evaluate import evaluate_take_fit
+    from dualhuman_builder.evaluation.fit import evaluate_take_fit
     from dualhuman_builder.fit.fitter import FitConfig
-    from dualhuman_builder.fit.pipeline import process_take
+    from dualhuman_builder.fit.process import process_take
 
     take, scene = recorded(scene_type, seed, fps, speed, tmp, model)
     t0 = time.perf_counter()
@@ -136,7 +136,7 @@ def main() -> None:
             from dualhuman_builder.capture.log.reader import read_columns
             from dualhuman_builder.sync.timeline import synchronise
 
-            from dualhuman_builder.fit.evaluate import mount_errors
+            from dualhuman_builder.evaluation.fit import mount_errors
             from dualhuman_builder.sim.studio import simulate_studio
 
             for s in args.seeds:

@@ -63,7 +63,7 @@ def record(model, frames: int, calls: int) -> list:
 
 
 def replay(faces, calls: list, **kw) -> tuple[float, np.ndarray]:
-    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.geometry.collision import CollisionTerm
 
     ct = CollisionTerm(faces, **kw)
     depths = []

@@ -81,7 +81,7 @@ def generate(path: Path, minutes: float) -> None:
 
     from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
     from dualhuman_builder.sim.files import ERGONOMIC_JOINTS, identity_pose, mvnx_arrays_from_suit, write_mvnx
-    from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+    from dualhuman_builder.body.mapping import SEGMENT_TPOSE_FRAME
     from dualhuman_builder.sim.suit import simulate_suit
     from dualhuman_builder.tracks import SkeletonTrack
 

@@ -40,7 +40,7 @@ def main() -> None:
 
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.body.topology import collision_faces
-    from dualhuman_builder.contacts.distance import MeshDistance, get_pair_distance
+    from dualhuman_builder.geometry.distance import MeshDistance, get_pair_distance
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
     model = get_body_model()

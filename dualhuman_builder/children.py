@@ -16,14 +16,17 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from dualhuman_builder.paths import REPO_ROOT
+
+
+#: The folder that holds the ``dualhuman_builder`` package imported now (a checkout, or site-packages).
+PACKAGE_PARENT = Path(__file__).resolve().parents[1]
 
 
 def child_env(extra: dict[str, str] | None = None) -> dict[str, str]:
-    """This process's environment for a ``python -m dualhuman_builder...`` child, with this source
-    tree first on ``PYTHONPATH`` (so the child imports the same code), plus ``extra``."""
+    """This process's environment for a ``python -m dualhuman_builder...`` child, with the folder of
+    the package imported now first on ``PYTHONPATH`` (so the child imports the same code), plus ``extra``."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO_ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONPATH"] = str(PACKAGE_PARENT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.update(extra or {})
     return env
 

@@ -34,7 +34,7 @@ from urllib.parse import urlsplit
 
 from dualhuman_builder.body.mapping import DEFAULT_MAPPING_PATH, MVN_SEGMENTS, SegmentMapping, load_segment_mapping
 from dualhuman_builder.errors import RigError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 
 #: Where the capture protocol straps a VIVE tracker on each MVN segment: the tracker's origin in
 #: the segment's frame (x forward, y left, z up at the T-pose; metres), on the body surface — belt

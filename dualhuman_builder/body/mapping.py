@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from dualhuman_builder.errors import RigError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 
 #: The 23 MVN body segments in ID order (segment ID = index + 1), per the MVN streaming spec.
 MVN_SEGMENTS = (
@@ -39,6 +39,10 @@ MVN_PARENTS = {
 }  # fmt: skip
 
 DEFAULT_MAPPING_PATH = RIGS_DIR / "mvn_anny.toml"
+
+#: Columns: an MVN segment's x (forward), y (left), z (up) axes in world coordinates for a body at
+#: identity orientation (faces +Z, left +X, up +Y): every segment's frame at the calibration T-pose.
+SEGMENT_TPOSE_FRAME = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
 def body_frame_to_world(direction: Sequence[float]) -> np.ndarray:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from dualhuman_builder.errors import RigError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 
 DEFAULT_REGIONS_PATH = RIGS_DIR / "anny_regions.toml"
 

@@ -9,7 +9,8 @@ time in nanoseconds.
 
 * :mod:`.sources` — the Source / Decoder interface and the scheme registry; one module per
   device family (:mod:`.mvn_udp`, :mod:`.vive_udp`, :mod:`.xbus_serial`, :mod:`.mti_can`,
-  :mod:`.vive_usb`, :mod:`.sim_source`), wire formats in :mod:`.wire`;
+  :mod:`.vive_usb`; ``sim://`` is registered by :mod:`dualhuman_builder.sim.source` through an
+  entry point), wire formats in :mod:`.wire`;
 * :mod:`.recorder` and :mod:`.session` — recording takes (live status, clean stops);
   :mod:`.log` — take files (MCAP): writing, reading, check, repair, dump;
 * :mod:`.replay` — samples back to the pipeline, or raw packets back onto the wire;

@@ -3,8 +3,9 @@
 :func:`plan_capture` turns a rig file or ad-hoc ``--source`` / ``--actor`` arguments into the
 sources to open and the actor bindings; :func:`capture_take` opens them, records a take
 (:class:`~dualhuman_builder.capture.recorder.Recorder`) and registers it in a workspace catalog
-with its checksum. A ``sim://`` source is recorded through real loopback transports
-(:mod:`.simulated_studio`).
+with its checksum. A URL that stands for a whole studio (``sim://``,
+:attr:`~dualhuman_builder.capture.sources.Source.PLAYS_STUDIO`) is recorded through real loopback
+transports (its source's :meth:`~dualhuman_builder.capture.sources.Source.loopback_session`).
 
 Ad-hoc arguments:
 
@@ -23,14 +24,15 @@ from typing import Callable, Sequence
 from urllib.parse import urlsplit
 
 from dualhuman_builder.capture.recorder import LiveStatus, Recorder, TakeResult
-from dualhuman_builder.capture.sources import Source, SourceError, open_source
+from dualhuman_builder.capture.sources import Source, SourceError, open_source, registered_sources, source_class
 from dualhuman_builder.rig import RigActor, load_rig
 
 
 @dataclass
 class CapturePlan:
     """``sources``: ``[(name, url)]``; ``actors``: bindings; ``rig_name`` / ``rig_text`` / ``rig_path``
-    when from a rig file; ``simulated``: the one ``sim://`` URL, if that is what is recorded."""
+    when from a rig file; ``simulated``: the one URL of a studio to play (``sim://``), if that is
+    what is recorded."""
 
     sources: list[tuple[str, str]]
     actors: list[RigActor] = field(default_factory=list)
@@ -40,7 +42,11 @@ class CapturePlan:
     simulated: str | None = None
 
 
-_KIND = {"mvn+udp": "mvn", "vive+udp": "vive", "xbus": "xbus", "mti+can": "can", "vive+usb": "viveusb", "sim": "sim"}
+_KIND = {"mvn+udp": "mvn", "vive+udp": "vive", "xbus": "xbus", "mti+can": "can", "vive+usb": "viveusb"}
+
+
+def _plays_studio(url: str) -> bool:
+    return source_class(url).PLAYS_STUDIO
 
 
 def plan_capture(rig: str | Path | None = None, sources: Sequence[str] = (), actors: Sequence[str] = ()) -> CapturePlan:
@@ -50,7 +56,7 @@ def plan_capture(rig: str | Path | None = None, sources: Sequence[str] = (), act
             raise SourceError("give either --rig or --source/--actor, not both",
                               fix="put ad-hoc sources in a rig file, or drop --rig")  # fmt: skip
         r = load_rig(rig)
-        sims = [s.url for s in r.sources if s.scheme == "sim"]
+        sims = [s.url for s in r.sources if _plays_studio(s.url)]
         return CapturePlan([(s.name, s.url) for s in r.sources], list(r.actors), r.name, r.text, Path(rig),
                            sims[0] if sims else None)  # fmt: skip
     if not sources:
@@ -62,17 +68,18 @@ def plan_capture(rig: str | Path | None = None, sources: Sequence[str] = (), act
         if not eq or "://" in name:
             name, url = "", text
         scheme = urlsplit(url).scheme
-        if scheme not in _KIND:
-            raise SourceError(f"unknown source scheme in {text!r}", fix=f"use one of {', '.join(s + '://' for s in _KIND)}")
+        known = registered_sources()
+        if scheme not in known:
+            raise SourceError(f"unknown source scheme in {text!r}", fix=f"use one of {', '.join(s + '://' for s in known)}")
         if not name:
             counts[scheme] = counts.get(scheme, 0) + 1
-            name = f"{_KIND[scheme]}{counts[scheme]}"
+            name = f"{_KIND.get(scheme, scheme)}{counts[scheme]}"
         if any(n == name for n, _ in named):
             raise SourceError(f"source name {name!r} is used twice", fix="name sources NAME=URL")
         named.append((name, url))
-    sims = [u for _, u in named if urlsplit(u).scheme == "sim"]
+    sims = [u for _, u in named if _plays_studio(u)]
     if sims and len(named) > 1:
-        raise SourceError("a sim:// source plays a whole simulated studio and cannot be mixed with other sources",
+        raise SourceError(f"{sims[0]} plays a whole simulated studio and cannot be mixed with other sources",
                           fix="record it on its own")  # fmt: skip
     bound = []
     for text in actors:
@@ -105,9 +112,8 @@ def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: flo
     opened: list[tuple[str, Source]] = []
     try:
         if plan.simulated is not None:
-            from dualhuman_builder.capture.simulated_studio import SimulatedStudioSession
-
-            session = SimulatedStudioSession(plan.simulated, speed=sim_speed, faults=sim_faults, progress=progress)
+            session = source_class(plan.simulated).loopback_session(plan.simulated, speed=sim_speed, faults=sim_faults,
+                                                                    progress=progress)  # fmt: skip
             opened, actors, rig_text = session.sources, session.actors, session.rig_text
             until = session.finished
         else:

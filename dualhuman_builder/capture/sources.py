@@ -1,7 +1,10 @@
 """Capture sources behind one small interface, named by URL (in rigs and on the command line).
 
 Like python-can's ``BusABC`` and pyserial's ``serial_for_url``: one scheme, one module, one
-class, imported lazily from :data:`SOURCES`; :func:`open_source` is the one door in.
+class, imported lazily from :data:`SOURCES`; :func:`open_source` is the one door in. Sources
+that live outside this package register through the ``dualhuman_builder.sources`` entry-point
+group (as python-can's ``can.interface`` plugins do): ``sim://`` is registered that way by
+:mod:`dualhuman_builder.sim.source`, so capture never imports the simulator.
 
 ==============================================  =================================================
 ``mvn+udp://HOST:9763[?allow=IP,IP]``           Xsens MVN network stream (:mod:`.mvn_udp`)
@@ -10,7 +13,7 @@ class, imported lazily from :data:`SOURCES`; :func:`open_source` is the one door
                                                 pty paths (:mod:`.xbus_serial`)
 ``mti+can://INTERFACE/CHANNEL``                 MTi-600 over CAN via python-can (:mod:`.mti_can`)
 ``vive+usb://[?serial=...]``                    VIVE tracker IMU over USB HID (:mod:`.vive_usb`)
-``sim://TYPE?seed=N``                           simulated studio, in-process (:mod:`.sim_source`)
+``sim://TYPE?seed=N``                           simulated studio (registered by :mod:`dualhuman_builder.sim`)
 ==============================================  =================================================
 
 Two layers, so that a recording can be replayed bit for bit:
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import abc
 import importlib
+import importlib.metadata
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -120,6 +124,9 @@ class Source(abc.ABC):
 
     kind: str = ""
     PARAMS: tuple[str, ...] = ()
+    #: True for a URL that stands for a whole studio (``sim://``): recording it opens
+    #: :meth:`loopback_session` (every device on its own transport) rather than this one source.
+    PLAYS_STUDIO: bool = False
 
     def __init__(self, url: str):
         self.url = url
@@ -137,6 +144,13 @@ class Source(abc.ABC):
     def make_decoder(cls, url: str) -> Decoder:
         """A fresh decoder for the packets of a source opened with ``url`` (used by replay)."""
         raise SourceError(f"{cls.__name__} has no decoder")
+
+    @classmethod
+    def loopback_session(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
+        """For :attr:`PLAYS_STUDIO` sources: the studio ``url`` names, played onto loopback
+        transports and opened as live sources. Returns an object with ``sources`` (``[(name,
+        Source)]``), ``actors`` (rig actors), ``rig_text``, ``finished()`` and ``close()``."""
+        raise SourceError(f"{cls.__name__} is one device, not a studio to play")
 
     def stats(self) -> dict[str, int]:
         """Transport and decoder counters together."""
@@ -194,26 +208,36 @@ def number_param(query: dict, key: str, kind, default):
                           fix=f"give {key} as a number") from None  # fmt: skip
 
 
-#: Scheme -> "module:Class" (imported when first used, like python-can's interface table).
+#: Scheme -> "module:Class" of the sources built into capture (imported when first used, like
+#: python-can's interface table).
 SOURCES: dict[str, str] = {
     "mvn+udp": "dualhuman_builder.capture.mvn_udp:MvnUdpSource",
     "vive+udp": "dualhuman_builder.capture.vive_udp:ViveUdpSource",
     "xbus": "dualhuman_builder.capture.xbus_serial:XbusSource",
     "mti+can": "dualhuman_builder.capture.mti_can:MtiCanSource",
     "vive+usb": "dualhuman_builder.capture.vive_usb:ViveUsbSource",
-    "sim": "dualhuman_builder.capture.sim_source:SimSource",
 }
+#: Entry-point group of sources registered from outside capture (``name = "module:Class"``).
+ENTRY_POINT_GROUP = "dualhuman_builder.sources"
+
+
+def registered_sources() -> dict[str, str]:
+    """Every scheme a source URL may use -> ``"module:Class"``: :data:`SOURCES` plus the
+    :data:`ENTRY_POINT_GROUP` entry points of the installed packages."""
+    out = dict(SOURCES)
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        out.setdefault(ep.name, ep.value)
+    return out
 
 
 def source_class(url: str) -> type[Source]:
     """The :class:`Source` subclass that handles ``url``'s scheme."""
-    from dualhuman_builder.rig import SOURCE_SCHEMES
-
     scheme = urlsplit(url).scheme
-    if scheme not in SOURCES:
-        known = ", ".join(s + "://" for s in SOURCE_SCHEMES)
-        raise SourceError(f"unknown source scheme {scheme!r} in {url!r}", fix=f"use one of {known}")
-    module, _, name = SOURCES[scheme].partition(":")
+    known = registered_sources()
+    if scheme not in known:
+        raise SourceError(f"unknown source scheme {scheme!r} in {url!r}",
+                          fix=f"use one of {', '.join(s + '://' for s in known)}")  # fmt: skip
+    module, _, name = known[scheme].partition(":")
     return getattr(importlib.import_module(module), name)
 
 

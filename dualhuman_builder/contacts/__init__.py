@@ -8,17 +8,17 @@ events over the regions of ``rigs/anny_regions.toml``:
 * :func:`compute_contacts` — an :class:`~dualhuman_builder.tracks.InteractionSequence` to a
   :class:`ContactResult`; :func:`contacts_from_vertices` for raw ``(T, V, 3)`` vertex arrays;
   :func:`contact_frame` for one frame in float64;
-* :func:`contacts_for_scene` — the same on a ground-truth scene, with F1 against its contacts;
 * :func:`~dualhuman_builder.contacts.stage.run_contacts` — the workspace stage.
 
-:mod:`.distance` is the warp-based signed distance the scene generator uses for its ground truth.
+The distance kernels live in :mod:`dualhuman_builder.geometry`; scoring against a scene's own contacts in
+:mod:`dualhuman_builder.evaluation.contacts`.
 """
 
 from dualhuman_builder.contacts.compute import (DEFAULT_BAND_M, DEFAULT_MERGE_GAP, DEFAULT_THRESHOLD_M, ContactResult,
-                                                ContactTopology, compute_contacts, contact_frame, contacts_for_scene,
+                                                ContactTopology, compute_contacts, contact_frame,
                                                 contacts_from_vertices, default_topology)  # fmt: skip
 from dualhuman_builder.contacts.stage import run_contacts
 
 __all__ = ["DEFAULT_BAND_M", "DEFAULT_MERGE_GAP", "DEFAULT_THRESHOLD_M", "ContactResult", "ContactTopology",
-           "compute_contacts", "contact_frame", "contacts_for_scene", "contacts_from_vertices", "default_topology",
+           "compute_contacts", "contact_frame", "contacts_from_vertices", "default_topology",
            "run_contacts"]  # fmt: skip

@@ -12,7 +12,7 @@ against the whole closed mesh, and distances within the band equal to its answer
 1. **Broad phase.** A frame whose whole-body boxes are farther apart than the band is skipped
    with no query at all; otherwise only vertices inside the other body's box grown by the band go
    on, and in the kernel only those within the band of one of the other body's region boxes.
-2. **Narrow phase** (:mod:`dualhuman_builder.contacts.narrow`). A warp BVH of each body, built once
+2. **Narrow phase** (:mod:`dualhuman_builder.geometry.narrow`). A warp BVH of each body, built once
    at the rest pose and refit per frame, finds in float32 each remaining vertex's closest face and
    distance, keeping those within the band (plus a 10 um slack); the two directions run in two
    threads (warp's kernels release the GIL). Then per vertex:
@@ -24,7 +24,7 @@ against the whole closed mesh, and distances within the band equal to its answer
      point), so libigl finds the same closest point with the same pseudonormal sign as on the
      whole mesh;
    * **the others** get the same pseudonormal signed distance in float64 on the face the BVH
-     found, in the same warp kernel (the rule of :mod:`dualhuman_builder.contacts.pseudonormal`:
+     found, in the same warp kernel (the rule of :mod:`dualhuman_builder.geometry.pseudonormal`:
      closest point, and the sign from the face, edge or vertex pseudonormal as libigl builds
      them; ``tests/test_pseudonormal.py`` checks the kernel against that module to 1e-12 m); any
      that comes out inside (a deep penetration) goes to libigl too. Where two faces tie to
@@ -73,8 +73,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dualhuman_builder.contacts.narrow import NearSelector
-from dualhuman_builder.contacts.pseudonormal import MeshAdjacency
+from dualhuman_builder.geometry.narrow import NearSelector
+from dualhuman_builder.geometry.pseudonormal import MeshAdjacency
 
 DEFAULT_THRESHOLD_M = 0.02
 DEFAULT_BAND_M = 0.05
@@ -94,7 +94,7 @@ class ContactTopology:
     (V, 3)`` metres, any pose (the rest pose for anny): the warp BVHs of the narrow phase are built
     there and refit per frame. Derived: ``face_region (F,)``, the majority region of each face's
     vertices (the first vertex's on a three-way tie), the unique edges (for the flood fill) and
-    the faces' :class:`~dualhuman_builder.contacts.pseudonormal.MeshAdjacency`.
+    the faces' :class:`~dualhuman_builder.geometry.pseudonormal.MeshAdjacency`.
     """
 
     faces: np.ndarray
@@ -630,22 +630,3 @@ def compute_contacts(seq, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: floa
 def default_topology() -> ContactTopology:
     """:meth:`ContactTopology.for_model` of the process-wide anny model, built once (~0.5 s)."""
     return ContactTopology.for_model()
-
-
-def contacts_for_scene(scene, threshold_m: float | None = None, band_m: float | None = None,
-                       topology: ContactTopology | None = None) -> tuple[ContactResult, dict[str, float]]:
-    """Contacts of a ground-truth :class:`~dualhuman_builder.sim.scenes.Scene` (or a path to a
-    saved one) and their precision, recall and F1 against the scene's own per-vertex contacts
-    (:meth:`Scene.contact_labels` at the same threshold). Defaults: the scene's
-    ``CONTACT_THRESHOLD`` and ``DISTANCE_BAND``."""
-    from dualhuman_builder.sim.scenes import CONTACT_THRESHOLD, DISTANCE_BAND, Scene
-
-    if isinstance(scene, (str, Path)):
-        scene = Scene.load(scene)
-    threshold = CONTACT_THRESHOLD if threshold_m is None else threshold_m
-    band = DISTANCE_BAND if band_m is None else band_m
-    if threshold > DISTANCE_BAND:
-        raise ValueError(f"threshold_m {threshold} exceeds the scene's stored distance band {DISTANCE_BAND} m; "
-                         "its reference labels cannot be compared")  # fmt: skip
-    res = compute_contacts(scene.sequence, threshold, band, topology=topology)
-    return res, res.f1(scene.contact_labels(threshold))

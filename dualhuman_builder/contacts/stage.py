@@ -1,5 +1,5 @@
 """The ``contacts`` workspace stage of a take (idempotent, crash-safe: see
-:mod:`dualhuman_builder.workspace.stages`).
+:mod:`dualhuman_builder.workspace.runner`).
 
 Reads the fit stage's ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence`) and
 writes, under ``WS/artifacts/TAKE/_take/contacts/``:
@@ -19,28 +19,20 @@ import json
 from typing import Callable
 
 from dualhuman_builder.contacts.compute import DEFAULT_BAND_M, DEFAULT_MERGE_GAP, DEFAULT_THRESHOLD_M, check_params
-from dualhuman_builder.errors import WorkspaceError
+from dualhuman_builder.fit.stage import fitted_bodies
+from dualhuman_builder.workspace.runner import Stage
 
 STAGE_VERSION = "1"
-
-
-def _fitted_bodies(ws, take: str):
-    rec = ws.stage_record("fit", take)
-    fix = f"dualhuman fit {ws.root} --take {take}"
-    if rec is None or rec["status"] != "done":
-        state = "has not run" if rec is None else f"is {rec['status']}"
-        raise WorkspaceError(f"take {take!r} has no fitted bodies: its fit stage {state}", path=ws.root, fix=fix)
-    arts = ws.artifacts("fit", take)
-    if "bodies.npz" not in arts:
-        raise WorkspaceError(f"the fit stage of take {take!r} wrote no bodies.npz", path=ws.root, fix=fix + " --force")
-    return arts["bodies.npz"]
+CONTACTS_FILE, REPORT_FILE = "contacts.npz", "contacts.json"
+CONTACTS = Stage("contacts", per="take", artifacts=(CONTACTS_FILE, REPORT_FILE), reads=("fit",),
+                 command="dualhuman contacts {ws} --take {take}")  # fmt: skip
 
 
 def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m: float = DEFAULT_BAND_M,
                  force: bool = False, log: Callable[[str], None] = print, merge_gap: int = DEFAULT_MERGE_GAP,
                  workers: int | None = None):  # fmt: skip
     """Contacts between the two fitted bodies of ``take`` (thresholds in metres); returns the
-    :class:`~dualhuman_builder.workspace.stages.StageResult` (``skipped`` when up to date).
+    :class:`~dualhuman_builder.workspace.runner.StageResult` (``skipped`` when up to date).
     ``workers``: processes (see :func:`~dualhuman_builder.contacts.compute.contacts_from_vertices`;
     the result does not depend on it, so it is not part of the stage's parameters)."""
     from dualhuman_builder.contacts.compute import compute_contacts
@@ -48,14 +40,14 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
 
     threshold_m, band_m, merge_gap = check_params(threshold_m, band_m, merge_gap)
     ws.take(take)  # unknown take: a clear error before anything else
-    bodies = _fitted_bodies(ws, take)
+    bodies = fitted_bodies(ws, take)
 
     def compute(out):
         seq = InteractionSequence.load(bodies)
         log(f"contacts: {seq.num_frames} frames of {take}, threshold {1000 * threshold_m:g} mm, "
             f"band {1000 * band_m:g} mm")  # fmt: skip
         res = compute_contacts(seq, threshold_m, band_m, progress=log, merge_gap=merge_gap, workers=workers)
-        res.save(out.path("contacts.npz"))
+        res.save(out.path(CONTACTS_FILE))
         counts = res.contact_counts()
         report = {
             "take": take,
@@ -64,7 +56,7 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
             "contact_vertices": {a: counts[i].tolist() for i, a in enumerate(res.actors)},
             "stats": res.stats,
         }
-        out.path("contacts.json").write_text(json.dumps(report, indent=1))
+        out.path(REPORT_FILE).write_text(json.dumps(report, indent=1))
         st = res.stats
         log(f"contacts: {st['contact_frames']}/{st['frames']} frames in contact, {len(res.events)} region events, "
             f"{st['skipped_far_frames']} frames skipped as far apart, {st['skipped_nan_frames']} with NaN vertices; "
@@ -76,3 +68,11 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
     params = {"threshold_m": float(threshold_m), "band_m": float(band_m), "merge_gap": int(merge_gap)}
     return ws.run_stage("contacts", compute, take=take, params=params, depends_on=[("fit", None)],
                         version=STAGE_VERSION, force=force)  # fmt: skip
+
+
+def load_contacts(ws, take: str):
+    """The take's :class:`~dualhuman_builder.contacts.compute.ContactResult` (its contacts stage
+    must be done)."""
+    from dualhuman_builder.contacts.compute import ContactResult
+
+    return ContactResult.load(CONTACTS.artifact(ws, take, CONTACTS_FILE))

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from dualhuman_builder.errors import WorkspaceError
-from dualhuman_builder.export.labels import Annotation, Vocabulary, check_annotation, load_vocabulary
+from dualhuman_builder.labels import Annotation, Vocabulary, check_annotation, load_vocabulary
 
 FIELDS = ("take", "sequence", "labels", "actor", "reactor", "symmetric", "annotator", "annotated_at")
 _TRUE, _FALSE = {"true", "yes", "1", "y", "t"}, {"false", "no", "0", "n", "f"}

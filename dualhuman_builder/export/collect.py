@@ -16,12 +16,8 @@ from typing import Callable
 from dualhuman_builder.errors import WorkspaceError
 
 
-def _done(ws, stage: str, take: str) -> bool:
-    return (ws.stage_record(stage, take) or {}).get("status") == "done"
-
-
 def _vocabulary(ws):
-    from dualhuman_builder.export.labels import load_vocabulary
+    from dualhuman_builder.labels import load_vocabulary
 
     try:
         return load_vocabulary(ws.root)
@@ -34,11 +30,12 @@ def workspace_items(ws, takes: list[str] | None = None, vocabulary=None) -> tupl
     ``takes`` (default: all) with a complete fit, and the names of those without one. Labels,
     texts, roles and the symmetric flag come from the take's sequences and annotations
     (:func:`~dualhuman_builder.export.annotate.take_labels`), checked against ``vocabulary``
-    (default: the workspace's, :func:`~dualhuman_builder.export.labels.load_vocabulary`)."""
-    from dualhuman_builder.contacts.compute import ContactResult
+    (default: the workspace's, :func:`~dualhuman_builder.labels.load_vocabulary`)."""
+    from dualhuman_builder.contacts.stage import CONTACTS, load_contacts
     from dualhuman_builder.export.annotate import take_labels
     from dualhuman_builder.export.layout import ExportItem
-    from dualhuman_builder.tracks import InteractionSequence
+    from dualhuman_builder.fit.stage import FIT, load_bodies
+    from dualhuman_builder.render.stage import RENDER
 
     vocabulary = vocabulary or _vocabulary(ws)
     known = ws.takes()
@@ -48,12 +45,12 @@ def workspace_items(ws, takes: list[str] | None = None, vocabulary=None) -> tupl
         raise WorkspaceError(f"no take named {unknown} in this workspace (it has {known})", path=ws.root)
     items, left_out = [], []
     for take in names:
-        if not _done(ws, "fit", take):
+        if not FIT.done(ws, take):
             left_out.append(take)
             continue
-        seq = InteractionSequence.load(ws.artifacts("fit", take)["bodies.npz"])
-        contacts = ContactResult.load(ws.artifacts("contacts", take)["contacts.npz"]) if _done(ws, "contacts", take) else None
-        render_dir = ws.artifact_dir("render", take) if _done(ws, "render", take) else None
+        seq = load_bodies(ws, take)
+        contacts = load_contacts(ws, take) if CONTACTS.done(ws, take) else None
+        render_dir = ws.artifact_dir("render", take) if RENDER.done(ws, take) else None
         try:
             lab = take_labels(ws, take, vocabulary)
         except ValueError as e:

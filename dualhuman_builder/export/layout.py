@@ -79,7 +79,7 @@ import numpy as np
 
 from dualhuman_builder import __version__
 from dualhuman_builder.export.features import FEATURE_DIM, FEATURE_SCHEMA, feature_stats, motion_features
-from dualhuman_builder.export.labels import Vocabulary, load_vocabulary
+from dualhuman_builder.labels import Vocabulary, load_vocabulary
 from dualhuman_builder.fileio import atomic_open, remove_partials, sha256_file
 from dualhuman_builder.tracks import InteractionSequence
 
@@ -680,7 +680,7 @@ def export_dataset(
     it has and listed under ``incomplete``. A sequence without motion or with NaN motion is left out
     and listed under ``skipped``. ``strict=True`` turns both into a ValueError. ``progress`` gets one
     line per sequence. ``vocabulary``: the interaction labels (default: the built-in one,
-    :func:`~dualhuman_builder.export.labels.load_vocabulary`). Re-running completes a partial export and rewrites only what changed.
+    :func:`~dualhuman_builder.labels.load_vocabulary`). Re-running completes a partial export and rewrites only what changed.
     Errors (ValueError): duplicate or unsafe ``seq_id``, text that is not UTF-8, a label outside the
     vocabulary, malformed contacts,
     a missing ``render_dir``, mixed fps or body models, an ``out_dir`` that is a non-empty folder

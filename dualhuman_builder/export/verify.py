@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from dualhuman_builder.export.features import FEATURE_DIM, motion_features
-from dualhuman_builder.export.labels import Vocabulary
+from dualhuman_builder.labels import Vocabulary
 from dualhuman_builder.export.layout import (
     LABELS_JSON,
     MANIFEST,

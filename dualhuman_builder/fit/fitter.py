@@ -24,7 +24,7 @@ resting on the partner opens flat instead of leaving the relaxed thumb and finge
 (the thumb stands ~3 cm out of the palm plane; the wrist's orientation data hold the palm). Each
 window's collision passes start with one over the openings alone, then the full rounds. That pass
 reads only what the openings change: the located contacts touching a finger
-(:meth:`~dualhuman_builder.fit.collision.CollisionTerm.moving_only`) and the openings' own terms
+(:meth:`~dualhuman_builder.geometry.collision.CollisionTerm.moving_only`) and the openings' own terms
 (:func:`_opening_energy`), the bones held as constants (no gradient into them). Each pass weights
 the term ``collision_weight_step`` (4) times the one before; a frame that the full rounds start with
 deeper than ``collision_deep_m`` (1 cm) is weighted one step ahead of the others from round 1 on:
@@ -39,15 +39,15 @@ rotations (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.pose_linear`: one matr
 rig; both actors as one stack of tensors, :class:`_Stack`, 5.5-6.5 -> 4.1-4.4 ms on 2026-11-26, a script
 outside the repo);
 the full meshes are skinned only for frames whose bodies penetrate after the skeleton pass
-(measured with :class:`~dualhuman_builder.fit.collision.CollisionTerm`), and only those frames get
+(measured with :class:`~dualhuman_builder.geometry.collision.CollisionTerm`), and only those frames get
 the collision pass (their full meshes skinned without gradient, to find the
 contacts; the few thousand (frame, vertex) pairs the loss reads are skinned again with it,
 :meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`). Frames far apart pay nothing. The collision term is
 called with the frames' timeline indices as keys, so each evaluation reuses the signs of the last
 one where the bodies moved too little to change them (the same answer wherever the pseudonormal sign
-is well defined; see :mod:`~dualhuman_builder.fit.collision`). By default
+is well defined; see :mod:`~dualhuman_builder.geometry.collision`). By default
 (``FitConfig.collision_hold_contacts``) a pass does not locate the contacts at every evaluation: the
-check after the previous pass located them (:meth:`~dualhuman_builder.fit.collision.CollisionTerm.linearise`,
+check after the previous pass located them (:meth:`~dualhuman_builder.geometry.collision.CollisionTerm.linearise`,
 every vertex inside the other body or outside within ``collision_margin_m``), and the pass holds
 them, each evaluation re-reading only their positions (point-to-plane, exact in value and gradient
 where located; no full-mesh skinning or query per evaluation). Held planes stall where the answer
@@ -188,7 +188,7 @@ class FitConfig:
     #: push fades out over a few frames; 0.3 s was not swept (only it and 0 were measured)
     collision_span_s: float = 0.3
     #: each collision pass locates the contacts where it starts and holds them through its L-BFGS
-    #: evaluations (:class:`~dualhuman_builder.fit.collision.Linearised`: an evaluation re-reads the
+    #: evaluations (:class:`~dualhuman_builder.geometry.collision.Linearised`: an evaluation re-reads the
     #: contacts' positions only), except in frames where a held round stalled; a window the rounds do
     #: not settle is fitted again from its skeleton pass with those frames and the ones left too deep
     #: located at every evaluation (see the module docstring). False: every contact located at every
@@ -696,7 +696,7 @@ class _Fitter:
     def __init__(self, model, inputs: list[ActorInput], fps: float, cfg: FitConfig, threads: int | None = None):
         """``threads``: the collision term's query threads (None: its default, the CPUs up to 8); worker
         processes build theirs with the same (:mod:`~dualhuman_builder.fit.workers`)."""
-        from dualhuman_builder.fit.collision import CollisionTerm
+        from dualhuman_builder.geometry.collision import CollisionTerm
         from dualhuman_builder.fit.skeleton import sole_vertices, torso_vertices
 
         self.cfg, self.fps, self.T, self.threads = cfg, fps, len(inputs[0].seg_rot), threads
@@ -1200,7 +1200,7 @@ def _dilate(mask: np.ndarray, n: int) -> np.ndarray:
 @dataclass
 class _Located:
     """Contacts located at some rows of a window's span: ``lin`` (a
-    :class:`~dualhuman_builder.fit.collision.Linearised`) whose batch rows are the span rows ``rows``
+    :class:`~dualhuman_builder.geometry.collision.Linearised`) whose batch rows are the span rows ``rows``
     (sorted)."""
 
     lin: object

@@ -98,7 +98,7 @@ class BodyRig:
 
     def __init__(self, model, shape, mapping: SegmentMapping | None = None, device=None, dtype=torch.float32):
         from dualhuman_builder.body.joints import tpose
-        from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+        from dualhuman_builder.body.mapping import SEGMENT_TPOSE_FRAME
 
         self.model = model
         self.device = torch.device(device or model.device)

@@ -23,6 +23,7 @@ import numpy as np
 
 from dualhuman_builder.body.joints import JOINT22_PARENTS
 from dualhuman_builder.errors import DualhumanError
+from dualhuman_builder.workspace.runner import Stage
 
 #: Tint of each actor's mask (RGB 0-255) and the skeleton colours: actor 1 orange-red, actor 2 blue,
 #: as the meshes of the contact row (and the demo's previews).
@@ -190,24 +191,27 @@ def write_contact_sheet(render_dir: str | Path, path: str | Path, sequence=None,
     return {"frames": frames, "views": [view_names[i] for i in vsel], "size": [W, H], "contact_row": strip is not None}
 
 
-__all__ = ["write_contact_sheet", "pick_frames", "MASK_COLOURS"]
+__all__ = ["write_contact_sheet", "pick_frames", "MASK_COLOURS", "SHEET", "run_sheet"]
+
+
+SHEET = Stage("sheet", per="take", artifacts=("contact_sheet.png",), reads=("render", "contacts", "fit"),
+              command="dualhuman render {ws} --take {take}")  # fmt: skip
 
 
 def run_sheet(ws, take: str, force: bool = False, log=print):
     """The ``sheet`` workspace stage: ``contact_sheet.png`` of the take's render, with the contacts
     stage's labels on the meshes when that stage is complete."""
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.tracks import InteractionSequence
+    from dualhuman_builder.contacts.stage import CONTACTS, load_contacts
+    from dualhuman_builder.fit.stage import load_bodies
+    from dualhuman_builder.render.stage import RENDER
 
-    have_contacts = (ws.stage_record("contacts", take) or {}).get("status") == "done"
+    RENDER.artifact(ws, take, "render.json")  # a clear error when the render is not done
+    have_contacts = CONTACTS.done(ws, take)
 
     def compute(out):
-        seq = InteractionSequence.load(ws.artifacts("fit", take)["bodies.npz"])
-        labels = None
-        if have_contacts:
-            from dualhuman_builder.contacts.compute import ContactResult
-
-            labels = ContactResult.load(ws.artifacts("contacts", take)["contacts.npz"]).labels
+        seq = load_bodies(ws, take)
+        labels = load_contacts(ws, take).labels if have_contacts else None
         log("drawing the contact sheet...")
         info = write_contact_sheet(ws.artifact_dir("render", take), out.path("contact_sheet.png"), seq, labels,
                                    get_body_model().faces.cpu().numpy(), title=f"take {take}")  # fmt: skip

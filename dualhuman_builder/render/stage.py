@@ -54,13 +54,18 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from dualhuman_builder.errors import WorkspaceError
+from dualhuman_builder.fit.stage import BODIES, FIT, fitted_bodies, load_bodies
 from dualhuman_builder.render.annotations import VISIBILITY_TOLERANCE_M, annotate_view, visibility_statistics
 from dualhuman_builder.render.cameras import Camera, CameraError, load_cameras, ring_cameras, save_cameras
 from dualhuman_builder.render.renderer import DEFAULT_SPP, RenderError, SequenceRenderer, body_model_uvs, linear_to_srgb8
 from dualhuman_builder.render.template import load_template
+from dualhuman_builder.workspace.runner import Stage
 
 STAGE_VERSION = "1"
+RENDER = Stage("render", per="take",
+               artifacts=("cameras.json", "render.json", "keypoints.npz", "visibility.json", "views/{view}/rgb/{frame}.png",
+                          "views/{view}/depth/{frame}.exr", "views/{view}/mask/{frame}.png"),
+               reads=("fit",), command="dualhuman render {ws} --take {take}")  # fmt: skip
 PROGRESS_DIR = ".progress"
 #: Frames whose bodies are evaluated at once (memory: ~0.3 MB per frame and actor).
 BODY_CHUNK = 32
@@ -381,11 +386,8 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
     ``fov_deg`` horizontal, ``size`` pixels square or ``(w, h)``, jittered with ``jitter_seed``),
     or the cameras of ``rig_file`` instead. Artifacts follow :func:`render_sequence`'s layout.
     Resumable after a crash or a full disk (module docstring). Returns the StageResult."""
-    rec = ws.stage_record("fit", take)
-    if rec is None or rec["status"] != "done":
-        state = "never ran" if rec is None else rec["status"]
-        raise WorkspaceError(f"take {take!r} has no fitted bodies to render (fit stage: {state})", path=ws.root,
-                             fix=f"dualhuman fit {ws.root} --take {take}")  # fmt: skip
+    fitted_bodies(ws, take)  # a clear error when the fit is not done
+    rec = FIT.record(ws, take)
     tpl = load_template(template)
     size = [int(size), int(size)] if np.isscalar(size) else [int(size[0]), int(size[1])]
     params = {"views": int(views), "size": size, "spp": int(spp), "radius_m": float(radius_m), "height_m": float(height_m),
@@ -394,7 +396,7 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
               "rig_file": str(rig_file) if rig_file else None,
               "rig_sha256": _file_sha(rig_file) if rig_file and Path(rig_file).is_file() else None,
               "every": int(every), "max_frames": max_frames, "variant": variant}  # fmt: skip
-    upstream = {"fit": rec["params_hash"], "bodies": rec["artifacts"].get("bodies.npz", {}).get("sha256")}
+    upstream = {"fit": rec["params_hash"], "bodies": rec["artifacts"][BODIES]["sha256"]}
     key = hashlib.sha256(json.dumps([params, upstream], sort_keys=True, default=str).encode()).hexdigest()[:16]
     scratch_root = ws.root / "scratch" / "render" / take
     scratch = scratch_root / key
@@ -404,9 +406,7 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
                 shutil.rmtree(old, ignore_errors=True)
 
     def compute(out):
-        from dualhuman_builder.tracks import InteractionSequence
-
-        seq = InteractionSequence.load(ws.artifacts("fit", take)["bodies.npz"])
+        seq = load_bodies(ws, take)
         if seq.num_frames == 0:
             raise RenderError(f"the fit result of take {take!r} has no frames: there are no fitted bodies to render")
         frames = select_frames(seq.num_frames, every, max_frames)

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from dualhuman_builder.errors import DualhumanError
-from dualhuman_builder.paths import RENDER_TEMPLATES_DIR
+from dualhuman_builder.resources import RENDER_TEMPLATES_DIR
 
 TEMPLATE_FORMAT = "dualhuman-render-template/1"
 DEFAULT_TEMPLATE = "studio"

@@ -20,12 +20,9 @@ import roma
 import torch
 
 from dualhuman_builder.body.joints import tpose
-from dualhuman_builder.body.mapping import MVN_SEGMENTS, SegmentMapping, load_segment_mapping
+from dualhuman_builder.body.mapping import MVN_SEGMENTS, SEGMENT_TPOSE_FRAME, SegmentMapping, load_segment_mapping
 from dualhuman_builder.tracks import BodyTrack, SkeletonTrack
 
-#: Columns: a segment's x (forward), y (left), z (up) axes in world coordinates for a body at
-#: identity orientation (faces +Z, left +X, up +Y).
-SEGMENT_TPOSE_FRAME = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
 def segment_kinematics(track: BodyTrack, mapping: SegmentMapping | None = None, model=None) -> SkeletonTrack:

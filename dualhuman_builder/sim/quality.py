@@ -134,14 +134,14 @@ WINDING_CHUNK = 16
 @functools.lru_cache(maxsize=1)
 def _winding_term():
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.geometry.collision import CollisionTerm
 
     return CollisionTerm(get_body_model().faces, sign="winding")
 
 
 def winding_depths(verts_a: np.ndarray, verts_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How deep each vertex of one body lies inside the other, inside/outside decided by the
-    generalised winding number (:class:`~dualhuman_builder.fit.collision.CollisionTerm` with
+    generalised winding number (:class:`~dualhuman_builder.geometry.collision.CollisionTerm` with
     ``sign="winding"``: exact depths, banded query plus sign flood fill).
 
     ``verts_a``, ``verts_b``: ``(T, V, 3)`` metres (anny's topology). Returns ``depth_a (T, V)``
@@ -172,7 +172,7 @@ def sign_by_winding(distances: tuple[np.ndarray, np.ndarray], verts_a: np.ndarra
     """Give banded signed distances the winding number's inside/outside, in place.
 
     ``distances``: ``(T, V)`` per actor (metres, negative inside, NaN beyond the band; any float
-    dtype), e.g. from :class:`~dualhuman_builder.contacts.distance.PairDistance` (pseudonormal
+    dtype), e.g. from :class:`~dualhuman_builder.geometry.distance.PairDistance` (pseudonormal
     sign); ``verts_a``, ``verts_b`` ``(T, V, 3)`` metres; ``frames``: indices to fix (default
     all). On the vertices :func:`winding_depths` covers, a vertex inside the other body gets
     ``-depth`` (also when deeper than the band, where it was NaN) and one outside ``+|d|``;

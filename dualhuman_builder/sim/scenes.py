@@ -267,7 +267,7 @@ def ground_truth_distances(seq, frames=None, previous=None) -> tuple[np.ndarray,
     generalised winding number (:func:`~dualhuman_builder.sim.quality.sign_by_winding`), which
     stays right where a posed body crosses itself, and which also reports vertices deeper inside
     than the band."""
-    from dualhuman_builder.contacts.distance import get_pair_distance
+    from dualhuman_builder.geometry.distance import get_pair_distance
     from dualhuman_builder.sim.quality import sign_by_winding
 
     pair = get_pair_distance()
@@ -310,7 +310,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     import torch
     from scipy.ndimage import gaussian_filter1d
 
-    from dualhuman_builder.contacts.distance import get_pair_distance
+    from dualhuman_builder.geometry.distance import get_pair_distance
 
     if not chor.contacts:
         return poses, 0.0, ""
@@ -481,7 +481,7 @@ def _resolve_by_swivel(model, performers, chor: Choreography, poses, seq, distan
     import torch
     from scipy.ndimage import gaussian_filter1d
 
-    from dualhuman_builder.contacts.distance import get_pair_distance
+    from dualhuman_builder.geometry.distance import get_pair_distance
 
     pair = get_pair_distance()
     T = chor.controls[0].frames
@@ -549,7 +549,7 @@ def _trunk_gap(model, va: np.ndarray, vb: np.ndarray) -> float:
     """Smallest signed distance (m) between the two trunks (head, neck, torso), each against the
     other's trunk surface only (every other vertex queried; the trunk mesh is open at the arms
     and legs, far from where torsos meet)."""
-    from dualhuman_builder.contacts.distance import MeshDistance
+    from dualhuman_builder.geometry.distance import MeshDistance
 
     if not _TRUNK:
         from dualhuman_builder.body.regions import load_regions

@@ -76,7 +76,7 @@ class SimStudio:
 
 def rig_tracker_sites(rig_path: str | Path | None = None) -> tuple[dict, dict]:
     """Tracker serial -> segment of the two actors of ``rig_path`` (default ``rigs/sim.toml``)."""
-    from dualhuman_builder.paths import RIGS_DIR
+    from dualhuman_builder.resources import RIGS_DIR
     from dualhuman_builder.rig import load_rig
 
     rig = load_rig(rig_path or RIGS_DIR / "sim.toml")

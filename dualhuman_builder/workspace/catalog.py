@@ -10,7 +10,7 @@ Tables (format version :data:`CATALOG_VERSION`):
   ``take_files`` — the take's source files with SHA-256 and size; ``take_actors`` — who was in it.
 * ``sequences`` — named frame ranges ``[frame_start, frame_stop)`` of a take, labels and text.
 * ``annotations`` (version 2) — interaction labels of a take (``sequence_id`` NULL) or of one of its
-  sequences: labels (JSON list of vocabulary names, :mod:`dualhuman_builder.export.labels`), free-text
+  sequences: labels (JSON list of vocabulary names, :mod:`dualhuman_builder.labels`), free-text
   descriptions (JSON list), actor and reactor (actor names of the take; NULL for symmetric or unknown),
   symmetric flag, annotator and time; one row per (take, sequence, annotator): re-importing replaces it.
 * ``stage_runs`` — one row per (take, sequence or none, stage): parameters hash and JSON, status

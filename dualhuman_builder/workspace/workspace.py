@@ -30,8 +30,7 @@ from dualhuman_builder.workspace.catalog import (
     transaction,
 )
 
-#: Pipeline stages in data-flow order (the columns of ``dualhuman status``).
-STAGES = ("scene", "devices", "capture", "sync", "fuse", "calibrate", "fit", "contacts", "render", "export")
+#: Folder name of a take-level stage's artifacts (in place of a sequence name).
 TAKE_LEVEL = "_take"
 
 
@@ -324,9 +323,9 @@ class Workspace:
 
     # ------------------------------------------------------------------ annotations
     def annotate(self, annotations: Iterable) -> int:
-        """Store :class:`~dualhuman_builder.export.labels.Annotation` records, all or none (one
+        """Store :class:`~dualhuman_builder.labels.Annotation` records, all or none (one
         transaction); a record replaces the one of the same take, sequence and annotator. The
-        records must be checked already (:func:`~dualhuman_builder.export.labels.check_annotation`);
+        records must be checked already (:func:`~dualhuman_builder.labels.check_annotation`);
         an unknown take or sequence is an error. Returns the number stored."""
         self._require_writable()
         rows = []
@@ -347,7 +346,7 @@ class Workspace:
     def annotations(self, take: str | None = None) -> list:
         """The stored annotations (of ``take``, or all), ordered by take, sequence (take-level
         first), annotator. An old catalog not yet migrated (opened read-only) has none."""
-        from dualhuman_builder.export.labels import Annotation
+        from dualhuman_builder.labels import Annotation
 
         if not self.conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'annotations'").fetchone():
             return []
@@ -372,9 +371,9 @@ class Workspace:
                   version: str = "1", force: bool = False):  # fmt: skip
         """Run ``compute(out)`` for one (take, sequence, stage) unless it is up to date.
 
-        See :func:`dualhuman_builder.workspace.stages.run_stage`.
+        See :func:`dualhuman_builder.workspace.runner.run_stage`.
         """
-        from dualhuman_builder.workspace.stages import run_stage
+        from dualhuman_builder.workspace.runner import run_stage
 
         self._require_writable()
         return run_stage(self, stage, compute, take=take, sequence=sequence, params=params or {},
@@ -382,7 +381,7 @@ class Workspace:
 
     def stage_record(self, stage: str, take: str, sequence: str | None = None):
         """The catalog row of a stage run as a dict, or None if it never ran."""
-        from dualhuman_builder.workspace.stages import stage_record
+        from dualhuman_builder.workspace.runner import stage_record
 
         return stage_record(self, stage, take, sequence)
 
@@ -399,7 +398,7 @@ class Workspace:
     def verify(self) -> list[str]:
         """Re-hash every take source file and every completed stage's artifacts against the
         catalog; returns the problems found (empty when everything matches)."""
-        from dualhuman_builder.workspace.stages import _record, artifact_problems
+        from dualhuman_builder.workspace.runner import _record, artifact_problems
 
         problems = []
         for take in self.takes():
@@ -415,7 +414,7 @@ class Workspace:
 
     def status_rows(self) -> list[dict[str, Any]]:
         """One row per take and per sequence: ``{"take", "sequence", "stages": {stage: info}}``."""
-        from dualhuman_builder.workspace.stages import describe_run
+        from dualhuman_builder.workspace.runner import describe_run
 
         rows = []
         runs: dict[tuple[int, int | None], dict[str, Any]] = {}

@@ -10,7 +10,7 @@ from dualhuman_builder.body import (
 from dualhuman_builder.body.shape import gender_value
 from dualhuman_builder.body.topology import collision_faces, mesh_report
 from dualhuman_builder.errors import BodyModelError, RigError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 
 
 def test_model_facts_and_world_frame(body_model):

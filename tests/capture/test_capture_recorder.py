@@ -215,7 +215,7 @@ def test_cli_capture_into_a_workspace_then_replay_and_dump(tmp_path):
 
     from click.testing import CliRunner
 
-    from cli import main
+    from dualhuman_builder.cli import main
     from dualhuman_builder.workspace import Workspace
     from dualhuman_builder.fileio import sha256_file
 

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from conftest import snapshot
 from scipy.spatial.transform import Rotation as R
 
-import cli
+from dualhuman_builder import cli
 from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
 from dualhuman_builder.capture.importers import import_file, read_bvh, read_mvnx
 from dualhuman_builder.capture.importers.bvh import parse_bvh
@@ -24,7 +24,7 @@ from dualhuman_builder.errors import FormatError, WorkspaceError
 from dualhuman_builder.fileio import load_npz, sha256_file
 from dualhuman_builder.sim.files import (ERGONOMIC_JOINTS, MVN_JOINT_LABELS, identity_pose, mvnx_arrays_from_suit,
                                          write_bvh, write_mvnx)  # fmt: skip
-from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+from dualhuman_builder.body.mapping import SEGMENT_TPOSE_FRAME
 from dualhuman_builder.sim.suit import MVN_SENSOR_SEGMENTS, simulate_suit
 from dualhuman_builder.tracks import SkeletonTrack
 from dualhuman_builder.workspace import Workspace

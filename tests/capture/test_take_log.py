@@ -288,7 +288,7 @@ def test_dump_jsonl_has_one_object_per_sample_in_si_units(tmp_path):
 def test_cli_log_check_repair_dump(tmp_path):
     from click.testing import CliRunner
 
-    from cli import main
+    from dualhuman_builder.cli import main
 
     path = tmp_path / "t.mcap"
     write_take(path, synthetic_samples(20)).close()

@@ -5,8 +5,8 @@ import json
 from click.testing import CliRunner
 from conftest import snapshot
 
-import cli
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder import cli
+from dualhuman_builder.resources import RIGS_DIR
 
 
 def run(*args):

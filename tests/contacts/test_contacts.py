@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from dualhuman_builder.contacts import (ContactResult, ContactTopology, compute_contacts, contact_frame,
-                                        contacts_for_scene, contacts_from_vertices, run_contacts)  # fmt: skip
+                                        contacts_from_vertices, run_contacts)  # fmt: skip
+from dualhuman_builder.evaluation.contacts import contacts_for_scene
 from dualhuman_builder.errors import FormatError, WorkspaceError
 
 BAND = 0.05
@@ -199,7 +200,7 @@ def test_narrow_phase_keeps_what_libigl_needs_at_exact_ties():
     import igl
     import trimesh
 
-    from dualhuman_builder.contacts.narrow import NearSelector
+    from dualhuman_builder.geometry.narrow import NearSelector
 
     slabs = [trimesh.creation.box(extents=(0.4, 0.02, 0.4)) for _ in range(2)]
     slabs[0].apply_translation((0.0, -0.04, 0.0))

@@ -1,7 +1,7 @@
 import pytest
 
 from dualhuman_builder.errors import RigError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 from dualhuman_builder.rig import load_rig
 
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli import main
+from dualhuman_builder.cli import main
 from dualhuman_builder.errors import WorkspaceError
 from dualhuman_builder.export.annotate import export_annotations, import_annotations, take_labels
-from dualhuman_builder.export.labels import Annotation, Vocabulary, check_annotation, load_vocabulary
+from dualhuman_builder.labels import Annotation, Vocabulary, check_annotation, load_vocabulary
 from dualhuman_builder.workspace import CATALOG_VERSION, Workspace
 
 HEADER = "take,sequence,labels,actor,reactor,symmetric,annotator,annotated_at,text_1,text_2\n"

@@ -240,7 +240,7 @@ def test_not_an_export_and_corrupted_export(export, tmp_path):
 
 
 def test_cli_convert_commands(export, tmp_path):
-    from cli import main
+    from dualhuman_builder.cli import main
 
     runner = CliRunner()
     r = runner.invoke(main, ["export", "interhuman", str(export[0]), str(tmp_path / "ih")])

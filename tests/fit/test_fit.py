@@ -199,14 +199,14 @@ def test_bad_input_gets_clear_errors(model):
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory, model):
-    from dualhuman_builder.fit.evaluate import record_simulated_take
+    from dualhuman_builder.evaluation.fit import record_simulated_take
 
     return record_simulated_take("handshake", 1, tmp_path_factory.mktemp("take"), fps=15.0, speed=1.0, model=model)
 
 
 def test_full_path_on_a_simulated_take(recorded, model):
-    from dualhuman_builder.fit.evaluate import evaluate_take_fit
-    from dualhuman_builder.fit.pipeline import process_take
+    from dualhuman_builder.evaluation.fit import evaluate_take_fit
+    from dualhuman_builder.fit.process import process_take
 
     take, scene = recorded
     tf = process_take(take, fps=15.0, model=model)
@@ -283,9 +283,9 @@ def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, m
     to a few millimetres and each mounting rotation to the calibration's accuracy."""
     from click.testing import CliRunner
 
-    import cli
+    from dualhuman_builder import cli
     from dualhuman_builder.capture.log.reader import read_columns
-    from dualhuman_builder.fit.evaluate import mount_errors, record_simulated_take
+    from dualhuman_builder.evaluation.fit import mount_errors, record_simulated_take
     from dualhuman_builder.sim.studio import simulate_studio
     from dualhuman_builder.sync.timeline import SyncResult
     from dualhuman_builder.workspace import Workspace
@@ -351,7 +351,7 @@ def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
 
     from dualhuman_builder.body.mapping import MVN_SEGMENTS
     from dualhuman_builder.capture.log.reader import read_columns
-    from dualhuman_builder.fit.evaluate import mount_errors
+    from dualhuman_builder.evaluation.fit import mount_errors
     from dualhuman_builder.fit.fuse import fuse_actor
     from dualhuman_builder.sim.studio import simulate_studio
 
@@ -735,7 +735,7 @@ def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch
     frames no check measured at their final corrections (here: none; before 2026-11-26 it measured
     every frame again)."""
     from dualhuman_builder.fit import fitter as fitter_module
-    from dualhuman_builder.fit.collision import CollisionTerm
+    from dualhuman_builder.geometry.collision import CollisionTerm
     from dualhuman_builder.fit.skeleton import torso_vertices
 
     T = 20

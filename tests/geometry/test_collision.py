@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from dualhuman_builder.body.topology import collision_faces
-from dualhuman_builder.fit.collision import CollisionTerm
+from dualhuman_builder.geometry.collision import CollisionTerm
 
 HUG_DZ = 0.15  # b in front of a, front to front
 BACK_DZ = -0.17  # b behind a, back to back: ~3 cm overlap (buttocks, heels, shoulder blades)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dualhuman_builder.contacts.pseudonormal import (EDGE, FACE, VERTEX, MeshAdjacency, closest_point_on_triangles,
+from dualhuman_builder.geometry.pseudonormal import (EDGE, FACE, VERTEX, MeshAdjacency, closest_point_on_triangles,
                                                      signed_distance_to_faces)  # fmt: skip
 
 
@@ -89,7 +89,7 @@ def test_the_narrow_phase_kernel_computes_the_same_signed_distance(body_model):
     for every point it finds beyond the threshold; the others are left to libigl (NaN)."""
     import igl
 
-    from dualhuman_builder.contacts.narrow import NearSelector
+    from dualhuman_builder.geometry.narrow import NearSelector
 
     V, F, P = _posed_body_and_points(body_model)
     adj = MeshAdjacency.of(F, len(V))
@@ -117,7 +117,7 @@ def test_an_edge_with_one_face_is_left_to_libigl():
 
 
 def test_the_narrow_phase_kernel_leaves_an_open_edge_to_libigl():
-    from dualhuman_builder.contacts.narrow import NearSelector
+    from dualhuman_builder.geometry.narrow import NearSelector
 
     V, F = _tetrahedron()
     sel = NearSelector(F[:3], V)

@@ -408,7 +408,7 @@ def test_stage_needs_fit_resumes_and_publishes(ws, body_model):
     from dualhuman_builder.errors import WorkspaceError
 
     ws.add_take("T001")
-    with pytest.raises(WorkspaceError, match=r"no fitted bodies.*never ran.*dualhuman fit .* --take T001"):
+    with pytest.raises(WorkspaceError, match=r"no fitted bodies.*has not run.*dualhuman fit .* --take T001"):
         run_render(ws, "T001", views=2, size=24, spp=1, log=lambda s: None)
     seq = make_pair(body_model, frames=3, gap_m=0.6)
     def fit(out):  # a fit stage whose result is this sequence

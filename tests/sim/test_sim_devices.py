@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation as R
 from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
 from dualhuman_builder.capture.samples import ImuSample, SuitFrame, TrackerSample
 from dualhuman_builder.conventions import GRAVITY
-from dualhuman_builder.sim.groundtruth import SEGMENT_TPOSE_FRAME
+from dualhuman_builder.body.mapping import SEGMENT_TPOSE_FRAME
 from dualhuman_builder.rig import TRACKER_SITES
 from dualhuman_builder.sim.imu import (ImuNoiseModel, earth_magnetic_field, gauss_markov, imu_errors, simulate_imu,
                                        specific_force)  # fmt: skip
@@ -467,9 +467,33 @@ def test_equal_seeds_give_identical_streams_and_different_seeds_differ():
     assert not np.array_equal(ia.acceleration, simulate_imu(spline, "Head", seed=8).acceleration)
 
 
+def greeting_sequence(model, shapes: list[dict], frames: int = 60, fps: float = 30.0, distance_m: float = 1.2):
+    """Two bodies facing each other ``distance_m`` apart (along Z), feet on the floor, raising
+    their arms from the rest A-pose to a T-pose with eased timing. Returns an InteractionSequence."""
+    import torch
+
+    from dualhuman_builder.body.joints import tpose
+    from dualhuman_builder.tracks import BodyTrack, InteractionSequence
+
+    s = 0.5 - 0.5 * np.cos(np.pi * np.linspace(0.0, 1.0, frames))  # ease in/out, 0 -> 1
+    tracks = []
+    for i, shape in enumerate(shapes):
+        shape_t = model.shape_tensor(shape)
+        with torch.no_grad():
+            target = tpose(model, shape_t).cpu().numpy()  # (J, 3) rotation vectors from rest
+            floor = -float(model.rest(shape_t).vertices[0, :, 1].min())  # lift the soles onto y = 0
+        pose = s[:, None, None] * target[None]  # rotvec scaling from zero is exact slerp
+        facing = np.array([0.0, np.pi * i, 0.0])  # actor 1 turned 180 degrees about +Y
+        pose[:, 0] = facing
+        z = (-0.5 if i == 0 else 0.5) * distance_m
+        transl = np.tile([0.0, floor, z], (frames, 1))
+        tracks.append(BodyTrack.from_model(model, pose, transl, shape_t.cpu().numpy(), fps, actor=f"actor{i}"))
+    return InteractionSequence(tuple(tracks), take="T", labels=("demo",),
+                               text=("Two people face each other and spread their arms.",))  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def body_gt(body_model):
-    from dualhuman_builder.demo import greeting_sequence
     from dualhuman_builder.sim.groundtruth import segment_kinematics
 
     seq = greeting_sequence(body_model, [None, None], frames=60)

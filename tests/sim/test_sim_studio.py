@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import cli
+from dualhuman_builder import cli
 from dualhuman_builder.capture.samples import ImuSample, SuitFrame, TrackerSample
 from dualhuman_builder.capture.sources import SourceError, open_source
 

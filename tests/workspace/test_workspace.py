@@ -10,9 +10,9 @@ import pytest
 from conftest import snapshot
 
 from dualhuman_builder.errors import FormatVersionError, WorkspaceError
-from dualhuman_builder.paths import RIGS_DIR
+from dualhuman_builder.resources import RIGS_DIR
 from dualhuman_builder.workspace import CATALOG_NAME, Workspace
-from dualhuman_builder.workspace.stages import STAGING_PREFIX
+from dualhuman_builder.workspace.runner import STAGING_PREFIX
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -326,7 +326,7 @@ def _has_group(name):
 def test_verify_rehashes_artifacts_and_sources(ws):
     from click.testing import CliRunner
 
-    import cli
+    from dualhuman_builder import cli
 
     _take(ws)
     r = ws.run_stage("fit", _write("bodies.npz", "abcdef"), take="T1", sequence="s1", params={})

@@ -2,7 +2,7 @@
 
 :func:`record_simulated_take` generates a scene, plays its simulated devices onto real loopback
 transports and records the take (the same path as ``dualhuman capture --source sim://...``);
-:func:`evaluate_take_fit` compares a :class:`~dualhuman_builder.fit.pipeline.TakeFit` with the
+:func:`evaluate_take_fit` compares a :class:`~dualhuman_builder.fit.process.TakeFit` with the
 scene and the simulators' realised errors:
 
 * ``mpjpe_mm``: mean 22-joint position error; ``root_mm``: mean pelvis-centre (root) error;

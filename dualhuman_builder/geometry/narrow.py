@@ -11,7 +11,7 @@ refit to each frame: under 1 ms) and answers one direction of a frame with
   ``band + slack`` (the **near** vertices). For a near vertex with ``d(p)`` above a given
   threshold (plus the slack) the same kernel also computes, in float64 on that face, libigl's
   pseudonormal signed distance (``pseudonormal_distance`` in :func:`_kernels`, the rule of
-  :mod:`dualhuman_builder.contacts.pseudonormal`: closest point by Ericson's Voronoi regions,
+  :mod:`dualhuman_builder.geometry.pseudonormal`: closest point by Ericson's Voronoi regions,
   sign from the face, edge or angle-weighted vertex pseudonormal);
 * **gather** — for the near vertices libigl has to answer (possible contacts: ``d(p)`` up to the
   threshold plus the slack; and those whose pseudonormal distance came out inside or undefined),
@@ -235,14 +235,14 @@ class NearSelector:
     of it (the BVHs are built there once and only refit afterwards); ``face_groups (F,)`` int
     (optional): a label per face, e.g. its body region; a point farther than the band from every
     group's box (of the vertices its faces use) costs no BVH query; ``adjacency``: the faces'
-    :class:`~dualhuman_builder.contacts.pseudonormal.MeshAdjacency` (built here when not given).
+    :class:`~dualhuman_builder.geometry.pseudonormal.MeshAdjacency` (built here when not given).
     Target 0 and 1 are the two bodies. One selector serves one calling thread at a time (it keeps
     one helper thread of its own for :meth:`query_pair`).
     """
 
     def __init__(self, faces: np.ndarray, reference_vertices: np.ndarray, slack_m: float = DEFAULT_SLACK_M,
                  face_groups: np.ndarray | None = None, adjacency=None):  # fmt: skip
-        from dualhuman_builder.contacts.pseudonormal import MeshAdjacency
+        from dualhuman_builder.geometry.pseudonormal import MeshAdjacency
 
         wp, self._closest_kernel, self._gather_kernel = _kernels()
         self._wp = wp

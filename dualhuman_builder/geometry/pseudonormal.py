@@ -19,7 +19,7 @@ build and per-point tree walk:
 
 :class:`MeshAdjacency` holds the index arrays this needs, built once per topology. The contact
 stage computes the same rule inside its narrow-phase warp kernel
-(:mod:`dualhuman_builder.contacts.narrow`, float64, for the vertices whose closest face it has just
+(:mod:`dualhuman_builder.geometry.narrow`, float64, for the vertices whose closest face it has just
 found); this module is the readable reference it is tested against.
 ``tests/test_pseudonormal.py`` checks value and sign against ``igl.signed_distance`` of the
 whole mesh on the closest faces libigl reports (a posed anny body, every feature kind), and

@@ -25,8 +25,8 @@ class SimulatedStudioSession:
 
     def __init__(self, url: str, *, speed: float = 1.0, faults=None, progress: Callable[[str], None] | None = None,
                  grace_s: float = 0.3, xbus: bool = True, can_bus: bool = True):  # fmt: skip
-        from dualhuman_builder.capture.sim_source import SimSource
-        from dualhuman_builder.paths import RIGS_DIR
+        from dualhuman_builder.sim.source import SimSource
+        from dualhuman_builder.resources import RIGS_DIR
         from dualhuman_builder.rig import load_rig
         from dualhuman_builder.sim.play import play_studio
 

@@ -1,6 +1,6 @@
 """Interaction labels: the vocabulary, and the annotation record a sequence carries.
 
-The vocabulary (``export/vocabulary.toml``, extended per project by ``WS/labels.toml``) is an
+The vocabulary (``dualhuman_builder/vocabulary.toml``, extended per project by ``WS/labels.toml``) is an
 ordered list of label names, each with a description, a ``one_sided`` flag (one person acts, the
 other reacts) and where it comes from (CHI3D's eight types, NTU RGB+D 120's mutual actions, this
 toolkit's scene types). Its order is the order of the exported multi-hot vector.
@@ -24,7 +24,9 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-BUILTIN_VOCABULARY = Path(__file__).with_name("vocabulary.toml")
+from dualhuman_builder.resources import VOCABULARY_PATH
+
+BUILTIN_VOCABULARY = VOCABULARY_PATH
 #: File name of a workspace's own additions to the vocabulary.
 PROJECT_VOCABULARY = "labels.toml"
 _NAME = re.compile(r"^[a-z][a-z0-9_]{0,63}$")

@@ -1,17 +1,16 @@
-"""The ``sync``, ``fuse`` and ``fit`` workspace stages of a recorded take (idempotent, crash-safe:
-see :mod:`dualhuman_builder.workspace.stages`). Each runs the stage before it when that is missing
-or stale.
+"""The ``fuse`` and ``fit`` workspace stages of a take (idempotent, crash-safe: see
+:mod:`dualhuman_builder.workspace.runner`). Each runs the stage before it when that is missing or
+stale (``fuse`` runs :func:`~dualhuman_builder.sync.stage.run_sync`).
 
 Artifacts (under ``WS/artifacts/TAKE/_take/<stage>/``):
 
-* ``sync``: ``sync.npz`` (:class:`~dualhuman_builder.sync.timeline.SyncResult`: every stream on the
-  timeline, tracker mounts) and ``sync.json`` (clock offsets and drifts, lags, mounts, with
-  uncertainties; with ``mounts_from``, which trackers kept the calibration take's mounts);
 * ``fuse``: ``<actor>.skeleton.npz`` (:class:`~dualhuman_builder.tracks.SkeletonTrack`, tracker
-  world) and ``fuse.json`` (per tracker: valid, rejected and bridged frames);
+  world), ``<actor>.trackers.npz`` (the trackers' fused positions, validity, segments and offsets)
+  and ``fuse.json`` (per tracker: valid, rejected and bridged frames);
 * ``fit``: ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence` of the two
-  fitted bodies), ``shapes.json`` (each actor's calibrated phenotype and segment-length residuals),
-  ``frames.npz`` (per-frame residuals and penetration), ``report.html`` and ``report.png``.
+  fitted bodies; :func:`load_bodies`), ``shapes.json`` (each actor's calibrated phenotype and
+  segment-length residuals), ``frames.npz`` (per-frame residuals and penetration),
+  ``report.html`` and ``report.png``.
 """
 
 from __future__ import annotations
@@ -23,71 +22,26 @@ import numpy as np
 
 from dualhuman_builder.errors import WorkspaceError
 from dualhuman_builder.fit.fitter import FitConfig
+from dualhuman_builder.sync.stage import load_sync, run_sync
+from dualhuman_builder.workspace.runner import Stage
 
-STAGE_VERSION = "4"  # 2: heading from the tracker constellation (mount sites); 3: the suit's segment misalignments; 4: the calibration take's tracker lag carried (and the fit's rounds since 3)
-
-
-def _take_file(ws, take: str):
-    files = [f for f in ws.take(take).files if str(f["path"]).endswith(".mcap")]
-    if not files:
-        raise WorkspaceError(f"take {take!r} has no recorded .mcap file to sync",
-                             fix="record it with `dualhuman capture -w WS --take T ...`")  # fmt: skip
-    return ws.root / files[0]["path"]
-
-
-def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force: bool = False, log: Callable = print,
-             take_file=None, depends_on=(), suit_chain: bool = True, mounts_from: str | None = None,
-             mounts_take_file=None, mounts_depends_on=()):  # fmt: skip
-    """``take_file``: read this .mcap instead of the take's registered file (the demo records its
-    take as an artifact of its ``capture`` stage, named in ``depends_on``). ``suit_chain=False``:
-    do not solve the suit's segment misalignments with the mounts (:func:`synchronise`).
-    ``mounts_from``: the session's calibration take, synced first if needed (from
-    ``mounts_take_file`` / ``mounts_depends_on`` as for ``take_file``), whose tracker mounts carry
-    over; a change of its sync makes this one stale."""
-    from dualhuman_builder.capture.log.reader import read_columns
-    from dualhuman_builder.sync.timeline import SyncResult, synchronise
-
-    extra: dict = {} if suit_chain else {"suit_chain": False}
-    if mounts_from:
-        if mounts_from == take:
-            raise WorkspaceError(f"take {take!r} cannot carry the mounts of itself",
-                                 fix="name the session's calibration take with --mounts-from")  # fmt: skip
-        ws.take(mounts_from)  # raises a clear error for an unknown take
-        run_sync(ws, mounts_from, fps=fps, log=log, take_file=mounts_take_file, depends_on=mounts_depends_on,
-                 suit_chain=suit_chain)  # fmt: skip
-        rec = ws.stage_record("sync", mounts_from)
-        extra.update(mounts_from=mounts_from, mounts_sha256=rec["artifacts"]["sync.npz"]["sha256"])
-
-    def compute(out):
-        columns = read_columns(take_file) if take_file is not None else _read(ws, take)
-        cal = SyncResult.load(ws.artifacts("sync", mounts_from)["sync.npz"]) if mounts_from else None
-        sync = synchronise(columns, fps=fps, use_trackers=use_trackers, progress=log, suit_chain=suit_chain,
-                           mounts_from=cal, mounts_from_take=mounts_from or "")  # fmt: skip
-        sync.save(out.path("sync.npz"))
-        out.path("sync.json").write_text(json.dumps(sync.report, indent=2, default=_json))
-        return {"frames": int(len(sync.times_s)), "actors": [a.actor for a in sync.actors],
-                "trackers": {a.actor: len(a.serials) for a in sync.actors},
-                **({"mounts_from": sync.report.get("mounts_from", {})} if mounts_from else {})}  # fmt: skip
-
-    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers, **extra},
-                        depends_on=list(depends_on), version=STAGE_VERSION, force=force)  # fmt: skip
-
-
-def _read(ws, take):
-    from dualhuman_builder.capture.log.reader import read_columns
-
-    return read_columns(_take_file(ws, take))
+#: Bumped whenever the same sync would fuse or fit to other numbers, so workspaces fit again.
+FIT_VERSION = "4"
+BODIES = "bodies.npz"
+FUSE = Stage("fuse", per="take", artifacts=("{actor}.skeleton.npz", "{actor}.trackers.npz", "fuse.json"),
+             reads=("sync",), command="dualhuman fuse {ws} --take {take}")  # fmt: skip
+FIT = Stage("fit", per="take", artifacts=(BODIES, "shapes.json", "frames.npz", "report.html", "report.png"),
+            reads=("fuse",), command="dualhuman fit {ws} --take {take}")  # fmt: skip
 
 
 def run_fuse(ws, take: str, force: bool = False, log: Callable = print, **sync_kw):
     """Fuse each actor of ``take`` (runs sync first when needed; ``sync_kw`` go to :func:`run_sync`)."""
     from dualhuman_builder.fit.fuse import fuse_actor
-    from dualhuman_builder.sync.timeline import SyncResult
 
     run_sync(ws, take, log=log, **sync_kw)
 
     def compute(out):
-        sync = SyncResult.load(ws.artifacts("sync", take)["sync.npz"])
+        sync = load_sync(ws, take)
         stats = {}
         for a in sync.actors:
             f = fuse_actor(a, sync.times_s, sync.fps)
@@ -99,15 +53,17 @@ def run_fuse(ws, take: str, force: bool = False, log: Callable = print, **sync_k
         out.path("fuse.json").write_text(json.dumps(stats, indent=2))
         return {"fused_with_trackers": {k: v["fused_with_trackers"] for k, v in stats.items()}}
 
-    return ws.run_stage("fuse", compute, take=take, depends_on=[("sync", None)], version=STAGE_VERSION, force=force)
+    return ws.run_stage("fuse", compute, take=take, depends_on=[("sync", None)], version=FIT_VERSION, force=force)
 
 
-def load_fused(ws, take: str) -> list:
+def load_fused(ws, take: str) -> tuple:
+    """``(sync, fused)``: the take's :class:`~dualhuman_builder.sync.timeline.SyncResult` and a
+    :class:`~dualhuman_builder.fit.fuse.FusedActor` per actor (its fuse stage must be done)."""
     from dualhuman_builder.fit.fuse import FusedActor
-    from dualhuman_builder.sync.timeline import SyncResult
     from dualhuman_builder.tracks import SkeletonTrack
 
-    sync = SyncResult.load(ws.artifacts("sync", take)["sync.npz"])
+    sync = load_sync(ws, take)
+    FUSE.artifact(ws, take, "fuse.json")  # a clear error when fuse has not run
     arts = ws.artifacts("fuse", take)
     stats = json.loads(arts["fuse.json"].read_text())
     out = []
@@ -125,7 +81,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
     (:func:`~dualhuman_builder.fit.fitter.fit_actors`; the answer does not depend on it)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import fit_actors, inputs_from_fused
-    from dualhuman_builder.fit.pipeline import calibrate_shapes, shape_dict
+    from dualhuman_builder.fit.process import calibrate_shapes, shape_dict
     from dualhuman_builder.fit.report import write_fit_report
 
     run_fuse(ws, take, log=log, **sync_kw)
@@ -145,7 +101,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         log("shapes: " + ", ".join(f"{k} {v.stature_m:.3f} m (segment lengths within {v.rms_mm:.1f} mm RMS)" for k, v in shapes.items()))
         res = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), sync.fps, config, log, workers)
         seq = res.sequence
-        seq.save(out.path("bodies.npz"))
+        seq.save(out.path(BODIES))
         out.path("shapes.json").write_text(json.dumps({k: v.as_dict() for k, v in shapes.items()}, indent=2))
         np.savez(out.path("frames.npz"), valid=res.valid, **{k.replace("/", "|"): v for k, v in res.frames.items()})
         without = [f.skeleton.actor for f in fused if not f.fused_with_trackers]
@@ -179,12 +135,18 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
 
     params = {k: getattr(config, k) for k in config.__dataclass_fields__}
     return ws.run_stage("fit", compute, take=take, params=params, depends_on=[("fuse", None)],
-                        version=STAGE_VERSION, force=force)  # fmt: skip
+                        version=FIT_VERSION, force=force)  # fmt: skip
 
 
-def _json(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
+def load_bodies(ws, take: str):
+    """The take's two fitted bodies, an :class:`~dualhuman_builder.tracks.InteractionSequence`
+    (its fit stage must be done: otherwise an error that says to run ``dualhuman fit``)."""
+    from dualhuman_builder.tracks import InteractionSequence
+
+    return InteractionSequence.load(fitted_bodies(ws, take))
+
+
+def fitted_bodies(ws, take: str):
+    """The path of the take's ``bodies.npz``; a clear error saying to run ``dualhuman fit`` when
+    its fit stage is not done."""
+    return FIT.artifact(ws, take, BODIES, what="fitted bodies")

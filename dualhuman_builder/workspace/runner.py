@@ -37,6 +37,58 @@ from dualhuman_builder.workspace.catalog import now_iso, transaction
 STAGING_PREFIX = ".staging-"
 
 
+@dataclass(frozen=True)
+class Stage:
+    """What a workspace stage declares about itself, so that every other part asks it the same way.
+
+    ``name``: the catalog's stage name; ``per``: ``"take"`` (one run per take) or ``"sequence"``
+    (one per sequence of a take); ``artifacts``: the files it writes (``{actor}`` stands for each
+    actor's name, ``/`` for folders); ``reads``: the stages whose artifacts it reads; ``command``:
+    how a user runs it, with ``{ws}``, ``{take}`` and ``{sequence}`` filled in for error messages.
+    """
+
+    name: str
+    per: str
+    artifacts: tuple[str, ...]
+    reads: tuple[str, ...] = ()
+    command: str = ""
+
+    def __post_init__(self) -> None:
+        if self.per not in ("take", "sequence"):
+            raise ValueError(f"stage {self.name!r}: per must be 'take' or 'sequence', not {self.per!r}")
+
+    def how_to_run(self, ws, take: str, sequence: str | None = None) -> str:
+        """The command that runs this stage for ``take`` (and ``sequence``)."""
+        if not self.command:
+            return f"run the {self.name} stage of take {take} first"
+        return self.command.format(ws=ws.root, take=take, sequence=sequence or "")
+
+    def record(self, ws, take: str, sequence: str | None = None) -> dict[str, Any] | None:
+        """The catalog row of this stage's run, or None if it never ran."""
+        return stage_record(ws, self.name, take, sequence)
+
+    def done(self, ws, take: str, sequence: str | None = None) -> bool:
+        """Whether this stage's run for ``take`` (``sequence``) is complete."""
+        rec = self.record(ws, take, sequence)
+        return rec is not None and rec["status"] == "done"
+
+    def artifact(self, ws, take: str, name: str, sequence: str | None = None, what: str | None = None) -> Path:
+        """The path of artifact ``name`` of the complete run; a :class:`WorkspaceError` that says
+        which command to run when the stage has not run, failed, or did not write ``name``
+        (``what`` names the artifact for a person, e.g. "fitted bodies")."""
+        rec = self.record(ws, take, sequence)
+        where = f"{take}/{sequence}" if sequence else take
+        fix = self.how_to_run(ws, take, sequence)
+        if rec is None or rec["status"] != "done":
+            state = "has not run" if rec is None else f"is {rec['status']}"
+            raise WorkspaceError(f"take {where!r} has no {what or name}: its {self.name} stage {state}", path=ws.root,
+                                 fix=fix)  # fmt: skip
+        if name not in rec["artifacts"]:
+            raise WorkspaceError(f"the {self.name} stage of {where} wrote no {name}", path=ws.root,
+                                 fix=f"{fix} --force")  # fmt: skip
+        return ws.root / rec["artifacts"][name]["path"]
+
+
 class StageOutput:
     """Where ``compute`` writes: ``out.path("bodies.npz")`` returns a path in the staging folder
     (parent folders created); every file left in the staging folder becomes an artifact."""

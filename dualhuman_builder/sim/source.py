@@ -7,9 +7,11 @@
 ``sim:///PATH/TO/SCENE.npz[?devices=N]``
     the same from a scene saved by ``dualhuman scene make``.
 
-Recording a ``sim://`` source (``dualhuman capture --source sim://...``) does not use this class:
-the recorder plays the simulated studio onto real loopback transports and records them through
-the live sources (:mod:`dualhuman_builder.capture.simulated_studio`).
+The scheme is registered into capture's source registry through the ``dualhuman_builder.sources``
+entry point (``pyproject.toml``). Recording a ``sim://`` source (``dualhuman capture --source
+sim://...``) does not iterate this class: :attr:`SimSource.PLAYS_STUDIO` makes the recorder play
+the simulated studio onto real loopback transports and record them through the live sources
+(:meth:`SimSource.loopback_session`, :mod:`dualhuman_builder.sim.loopback`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,15 @@ class SimSource(Source):
 
     kind = "sim"
     PARAMS = ("seed", "fps", "tempo", "duration", "approach", "devices")
+    PLAYS_STUDIO = True
+
+    @classmethod
+    def loopback_session(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
+        """The studio of ``url`` on loopback transports: a
+        :class:`~dualhuman_builder.sim.loopback.SimulatedStudioSession`."""
+        from dualhuman_builder.sim.loopback import SimulatedStudioSession
+
+        return SimulatedStudioSession(url, speed=speed, faults=faults, progress=progress)
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
         from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene

@@ -1,0 +1,232 @@
+"""`dualhuman capture`, `log`, `replay`, `import`: recording takes and reading them back."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from dualhuman_builder.cli.app import console, err_console, main
+
+
+@main.command("import")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--take", default=None, help="Take name (default: the file name without its suffix, made safe).")
+@click.option("--actor", default=None, help="A registered actor who wears the suit (`dualhuman actor add`).")
+@click.option("--scale", type=float, default=None, help="BVH only: file units to metres (default: detected, m/cm/mm).")
+@click.option("--z-up", is_flag=True, help="BVH only: the file is Z-up (BVH is usually Y-up).")
+def import_(workspace: Path, file: Path, take: str | None, actor: str | None, scale: float | None, z_up: bool):
+    """Import a recorded FILE into WORKSPACE as a take: an Xsens MVN XML export (.mvnx, read
+    streaming; calibration poses and every per-frame array kept) or a Biovision .bvh.
+
+    The file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read from it
+    (skeleton.npz, Y-up metres), and the take is registered with checksums. Example:
+    dualhuman import ws session3.mvnx --actor alice
+    """
+    from rich.markup import escape
+
+    from dualhuman_builder.capture.importers import import_file
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        with console.status(f"reading {file.name}...") as spinner:
+            r = import_file(ws, file, take=take, actor=actor, scale=scale, up="z" if z_up else "y",
+                            progress=lambda m: spinner.update(m))  # fmt: skip
+    console.print(f"imported {file.name} as take {r.take!r}: {r.frames:,} frames at {r.fps:g} fps "
+                  f"({r.duration_s:.2f} s), {r.segments} segments", highlight=False, soft_wrap=True)  # fmt: skip
+    if r.format == "mvnx":
+        console.print(f"  subject {r.subject or '(no label)'}; calibration poses: "
+                      f"{', '.join(r.calibration_poses) or 'none'}", highlight=False, soft_wrap=True)  # fmt: skip
+        if r.arrays:
+            console.print(f"  per-frame arrays: {', '.join(r.arrays)}", highlight=False, soft_wrap=True)
+    for note in r.notes:
+        console.print(f"  [dim]{escape(note)}[/]", highlight=False, soft_wrap=True)
+    console.print(f"  files in {r.source.parent}", highlight=False, soft_wrap=True)
+
+@main.command()
+@click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Rig file naming the sources and who wears what (e.g. rigs/studio.toml).")
+@click.option("--source", "sources", multiple=True, metavar="[NAME=]URL",
+              help="A source without a rig file; repeatable (mvn+udp://:9763, vive+udp://:8051, "
+                   "xbus:///dev/ttyUSB0, mti+can://socketcan/can0, vive+usb://, sim://handshake?seed=3).")
+@click.option("--actor", "actors", multiple=True, metavar="NAME=SOURCE#CHARACTER",
+              help="Bind an actor to an MVN character of a --source, e.g. alice=mvn1#0; repeatable.")
+@click.option("--take", required=True, help="Take name (letters, digits, - and _), e.g. T001.")
+@click.option("--duration", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Seconds to record (default: until Ctrl-C; a sim:// take ends when it has played).")
+@click.option("-w", "--workspace", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Workspace: the take goes to WS/takes/TAKE/TAKE.mcap and into its catalog.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Take file to write (default with --workspace: inside it).")
+@click.option("--sim-speed", type=float, default=1.0, show_default=True,
+              help="For sim:// takes: play the simulated devices this many times faster than real time.")
+@click.option("--foxglove-hz", type=float, default=60.0, show_default=True,
+              help="Body-pose transforms per second and actor for Foxglove (0: none).")
+@click.option("--quiet", is_flag=True, help="No live status; only the summary at the end.")
+def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed, foxglove_hz, quiet):
+    """Record a take: every source of a rig (or the --source ones) into one MCAP file with the raw
+    bytes of every datagram and frame, the decoded samples, and body poses Foxglove can show.
+
+    A live table shows each source's rate, loss, errors and the age of its last sample, and
+    which actors' suits and trackers are live. Stop with Ctrl-C or --duration. A device lost or a
+    full disk mid-take stops it cleanly: everything before is kept (exit status 1).
+
+    \b
+    Examples:
+      dualhuman capture --rig rigs/studio.toml --take T001 --duration 60 -w WS
+      dualhuman capture --source 'sim://handshake?seed=3' --take sim1 --out sim1.mcap
+      dualhuman capture --source suits=mvn+udp://:9763 --actor alice=suits#0 --take T2 --out T2.mcap
+    """
+    import math
+
+    from rich.live import Live
+
+    from dualhuman_builder.capture.session import capture_take, default_take_path, plan_capture
+    from dualhuman_builder.cli.console import live_status_table
+
+    plan = plan_capture(rig_file, sources, actors)
+    if out is None:
+        if workspace is None:
+            raise click.UsageError("say where the take goes: --workspace WS or --out TAKE.mcap")
+        out = default_take_path(workspace, take)
+    speed = math.inf if sim_speed == 0 else sim_speed
+    log = None if quiet else (lambda m: err_console.print(f"[dim]{m}[/]", highlight=False))
+    if quiet or not console.is_terminal:
+        result = capture_take(plan, out, take=take, duration=duration, workspace=workspace, progress=log,
+                              sim_speed=speed, foxglove_hz=foxglove_hz)  # fmt: skip
+    else:
+        with Live(console=console, refresh_per_second=4, transient=False) as live:
+            result = capture_take(plan, out, take=take, duration=duration, workspace=workspace, progress=log,
+                                  sim_speed=speed, foxglove_hz=foxglove_hz,
+                                  on_status=lambda st: live.update(live_status_table(st)))  # fmt: skip
+    counts = result.samples_per_topic
+    console.print(f"take {result.take}: {result.duration_s:.1f} s, {sum(counts.values())} samples on {len(counts)} "
+                  f"topics, {result.messages} messages -> {result.path}", highlight=False)  # fmt: skip
+    for name, st in result.source_stats.items():
+        shown = ", ".join(f"{k} {v}" for k, v in sorted(st.items()) if v and k not in ("bytes",))
+        console.print(f"  {name}: {shown}", highlight=False)
+    for ev in result.events[:20]:
+        console.print(f"  [yellow]{ev['source']} {ev['entity']}: {ev['kind']}[/] {ev['message']}", highlight=False)
+    if result.error:
+        from dualhuman_builder.cli.console import print_error
+        from dualhuman_builder.errors import DualhumanError
+
+        print_error(err_console, DualhumanError(result.error, fix="the take is kept up to the failure; "
+                                                f"check it with `dualhuman log check {result.path}`"))
+        sys.exit(1)
+
+
+@main.group()
+def log():
+    """Inspect, repair and dump take files (MCAP)."""
+
+
+@log.command("check")
+@click.argument("take_file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def log_check(take_file: Path, as_json: bool):
+    """Read a whole take (CRCs checked) and report what it holds and what is lost.
+
+    Exit status 0 when complete and intact, 1 when it needs `dualhuman log repair`
+    (cut off by a crash or a full disk) or has damaged chunks."""
+    from dualhuman_builder.capture.log.reader import check_take
+
+    rep = check_take(take_file)
+    if as_json:
+        console.print_json(data=rep.to_dict())
+    else:
+        state = "[green]complete[/]" if rep.ok else ("[yellow]incomplete[/]" if not rep.complete else "[red]damaged[/]")
+        dur = "" if rep.first_ns is None else f", {(rep.last_ns - rep.first_ns) / 1e9:.1f} s"
+        console.print(f"{take_file}: {state}, {rep.messages} messages in {rep.chunks} chunks{dur}, "
+                      f"{rep.size} bytes ({rep.lost_bytes} unreadable at the end)", highlight=False)  # fmt: skip
+        for topic, n in sorted(rep.per_topic.items()):
+            console.print(f"  {topic}: {n}", highlight=False)
+        for p in rep.problems:
+            console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+    sys.exit(0 if rep.ok else 1)
+
+
+@log.command("repair")
+@click.argument("take_file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the repaired take here (default: in place; the original is kept as NAME.damaged.mcap).")
+def log_repair(take_file: Path, out: Path | None):
+    """Rebuild a take cut off by a crash, kill -9 or a full disk: everything readable, with a full index."""
+    from dualhuman_builder.capture.log.reader import repair_take
+
+    rep = repair_take(take_file, out)
+    console.print(f"repaired {rep.path}: {rep.messages} messages kept, {rep.lost_bytes} bytes lost at the end",
+                  highlight=False)  # fmt: skip
+    if rep.original:
+        console.print(f"  original kept as {rep.original}", highlight=False)
+    for p in rep.problems:
+        console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+
+
+@log.command("dump")
+@click.argument("take_file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--jsonl", is_flag=True, help="One JSON object per line (the only format for now).")
+@click.option("--raw", is_flag=True, help="Also dump the raw packets (hex).")
+@click.option("--topic", "topics", multiple=True, help="Only topics starting with this; repeatable.")
+def log_dump(take_file: Path, jsonl: bool, raw: bool, topics: tuple[str, ...]):
+    """Print every decoded sample: source, character or device, device and host timestamps (ns),
+    fields in SI units (metres, m/s, m/s^2, rad/s; quaternions x, y, z, w; Y-up world).
+
+    Example: dualhuman log dump T001.mcap --jsonl | head"""
+    from dualhuman_builder.capture.log.reader import dump_jsonl
+
+    try:
+        dump_jsonl(take_file, sys.stdout, raw=raw, topics=topics)
+    except BrokenPipeError:
+        sys.stderr.close()
+
+
+@main.command()
+@click.argument("take_file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--to", "targets", multiple=True, metavar="URL",
+              help="Put the raw packets back on the wire: mvn+udp://HOST:PORT, vive+udp://HOST:PORT, "
+                   "xbus://PATH, mti+can://INTERFACE/CHANNEL; repeatable.")
+@click.option("--speed", type=float, default=1.0, show_default=True, help="Times real time with --to (0: as fast as possible).")
+@click.option("--verify", is_flag=True, help="Also re-decode the raw packets and check they give the recorded samples bit for bit.")
+def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool):
+    """Replay a take: read back its samples exactly as recorded (a summary per channel is printed;
+    from Python, `replay_samples` and `read_columns` hand them to the pipeline), or with --to send
+    its raw datagrams and frames to live consumers at the recorded timing.
+
+    \b
+    Examples:
+      dualhuman replay T001.mcap --verify
+      dualhuman replay T001.mcap --to mvn+udp://127.0.0.1:9763 --to vive+udp://127.0.0.1:8051 --speed 1
+    """
+    import math
+    import time
+
+    from dualhuman_builder.capture.log.reader import read_columns
+    from dualhuman_builder.capture.replay import replay_to, verify_replay
+
+    if targets:
+        rep = replay_to(take_file, list(targets), speed=math.inf if speed == 0 else speed)
+        console.print(f"sent {rep.packets} packets of {rep.recorded_s:.1f} s recorded in {rep.elapsed_s:.2f} s"
+                      + "".join(f"\n  {u}: {n}" for u, n in rep.sent.items()), highlight=False)  # fmt: skip
+        if rep.skipped_sources:
+            console.print(f"  not sent (no --to for their kind): {', '.join(rep.skipped_sources)}", highlight=False)
+        return
+    t = time.perf_counter()
+    columns = read_columns(take_file)
+    dt = time.perf_counter() - t
+    n = sum(c.count for c in columns.values())
+    firsts = [int(c.columns["host_time_ns"][0]) for c in columns.values() if c.count]
+    lasts = [int(c.columns["host_time_ns"][-1]) for c in columns.values() if c.count]
+    span = (max(lasts) - min(firsts)) / 1e9 if firsts else 0.0
+    console.print(f"{n} samples over {span:.1f} s of host time, read in {dt:.2f} s", highlight=False)
+    for topic, c in sorted(columns.items()):
+        console.print(f"  {topic}: {c.count} {c.sample_type}", highlight=False)
+    if verify:
+        chk = verify_replay(take_file)
+        if chk.identical:
+            console.print(f"[green]re-decoding the raw packets gives the recorded {chk.samples} samples bit for bit[/]")
+        else:
+            console.print(f"[red]{chk.mismatches} of {chk.samples} samples differ[/]; first: {chk.first_mismatch}")
+            sys.exit(1)

@@ -1,0 +1,256 @@
+"""`dualhuman annotate` and `dualhuman export`: labels and the training-ready dataset."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from dualhuman_builder.cli.app import console, main
+
+
+@main.group()
+def annotate():
+    """Interaction labels and descriptions: round-trip them through any annotation tool.
+
+    \b
+      dualhuman annotate vocabulary [WS]             the label names you may use
+      dualhuman annotate export WS labels.csv        every take and sequence, annotated or blank
+      dualhuman annotate import WS labels.csv        read them back (CSV or JSON Lines)
+
+    A label record: labels from the vocabulary (CHI3D's eight types and NTU-120's mutual actions,
+    extended by WS/labels.toml), actor and reactor for one-sided interactions, a symmetric flag,
+    several free-text descriptions, the annotator and the time. The export stores them per
+    sequence (text.json, with a multi-hot vector over labels.json).
+    """
+
+
+@annotate.command("vocabulary")
+@click.argument("workspace", required=False, type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print labels.json as the export writes it.")
+def annotate_vocabulary(workspace: Path | None, as_json: bool):
+    """List the interaction labels (the built-in vocabulary, plus WORKSPACE/labels.toml if given).
+
+    Example:  dualhuman annotate vocabulary WS
+    """
+    from dualhuman_builder.errors import WorkspaceError
+    from dualhuman_builder.labels import load_vocabulary
+
+    try:
+        vocab = load_vocabulary(workspace)
+    except ValueError as e:
+        raise WorkspaceError(str(e), path=workspace) from None
+    if as_json:
+        click.echo(json.dumps(vocab.as_dict(), indent=1))
+        return
+    for i, lab in enumerate(vocab.labels):
+        side = "one-sided" if lab.one_sided else "symmetric"
+        console.print(f"{i:3d}  {lab.name:<20} {side:<10} {lab.description}  [dim]({', '.join(lab.sources)})[/]",
+                      highlight=False, soft_wrap=True)  # fmt: skip
+
+
+@annotate.command("export")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("file", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(["csv", "jsonl"]), default=None,
+              help="File format (default: from FILE's extension; JSON Lines on standard output).")
+@click.option("--no-blank", is_flag=True, help="Only stored annotations, no blank rows for unannotated takes.")
+def annotate_export(workspace: Path, file: Path | None, fmt: str | None, no_blank: bool):
+    """Write the annotations of WORKSPACE to FILE (.csv or .jsonl; standard output without FILE):
+    every stored annotation, and a blank row for each take and sequence that has none yet, to be
+    filled in and imported back.
+
+    CSV columns: take, sequence, labels (';'-separated), actor, reactor, symmetric, annotator,
+    annotated_at, text_1, text_2, text_3, ...
+
+    Example:  dualhuman annotate export WS labels.csv
+    """
+    from dualhuman_builder.export.annotate import export_annotations
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        text, n = export_annotations(ws, file, fmt, blank=not no_blank)
+    if file is None:
+        click.echo(text, nl=False)
+    else:
+        console.print(f"{n} row(s) written to {file}", highlight=False)
+
+
+@annotate.command("import")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--annotator", default=None, help="Annotator name for rows whose annotator column is empty.")
+@click.option("--skip-invalid", is_flag=True, help="Import the valid rows and list the invalid ones (default: import nothing).")
+def annotate_import(workspace: Path, file: Path, annotator: str | None, skip_invalid: bool):
+    """Read annotations from FILE (.csv or .jsonl, UTF-8) into WORKSPACE's catalog.
+
+    The whole file is checked first: takes and sequences exist, labels are in the vocabulary,
+    actor and reactor are actors of the take, the text is UTF-8. A row replaces the stored
+    annotation of the same take, sequence and annotator; blank rows are skipped. The next
+    `dualhuman export` carries the labels into the dataset.
+
+    Example:  dualhuman annotate import WS labels.csv --annotator alice
+    """
+    from dualhuman_builder.export.annotate import import_annotations
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        res = import_annotations(ws, file, annotator=annotator, skip_invalid=skip_invalid)
+    for line, msg in res["invalid"]:
+        console.print(f"[yellow]skipped[/] line {line}: {msg}", highlight=False)
+    console.print(f"{res['imported']} annotation(s) imported from {file} ({res['blank']} blank, "
+                  f"{len(res['invalid'])} invalid row(s) skipped)", highlight=False)  # fmt: skip
+
+
+class _ExportGroup(click.Group):
+    """`dualhuman export WS OUT` builds; `dualhuman export verify|shards ...` are subcommands."""
+
+    def resolve_command(self, ctx, args):
+        if args and args[0] not in self.commands and not args[0].startswith("-"):
+            args = ["build", *args]
+        return super().resolve_command(ctx, args)
+
+
+@main.group(cls=_ExportGroup)
+def export():
+    """The training-ready dataset: build it, verify it, shard it, convert it.
+
+    \b
+      dualhuman export WS OUT                every fitted take of WS -> the dataset folder OUT
+      dualhuman export verify OUT            checksums, schema, splits, shapes, NaNs
+      dualhuman export shards OUT DIR        WebDataset tar shards of a split, for streaming
+      dualhuman export interhuman OUT DEST   InterGen's InterHuman layout (two persons, 30 fps)
+      dualhuman export humanml3d OUT DEST    HumanML3D's layout (one motion per person, 20 fps)
+    """
+
+
+@export.command("build")
+@click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--take", "takes", multiple=True, help="Export only this take (repeatable; default: every fitted take).")
+@click.option("--split", "split_ratio", type=click.FloatRange(min=0.0, max=1.0, min_open=True), default=0.75,
+              show_default=True, help="Share of sequences in the train split (the rest is test).")
+@click.option("--subject-disjoint", is_flag=True, help="No performer in both splits.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the split.")
+@click.option("--strict", is_flag=True, help="Fail when a take lacks a stage instead of exporting what is complete.")
+def export_build(workspace: Path, out: Path, takes: tuple[str, ...], split_ratio: float, subject_disjoint: bool, seed: int,
+                 strict: bool):  # fmt: skip
+    """Export every fitted take of WORKSPACE as a dataset folder OUT.
+
+    Per sequence: both actors' anny parameters and joints, the 269-dim motion features, contacts
+    (bit-packed labels, distances, region events), labels and texts, cameras and renders; at the
+    top a manifest (versions, units, axes, SHA-256 of every file), a schema of every array, seeded
+    train/test splits, feature mean/std and a dataset card (README.md). Re-running completes a
+    partial export and rewrites only what changed.
+
+    Example:  dualhuman export WS WS/export
+    """
+    from dualhuman_builder.export.collect import run_export
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        m = run_export(ws, out, list(takes) or None, strict=strict, split_ratio=split_ratio,
+                       subject_disjoint=subject_disjoint, seed=seed, log=console.print)  # fmt: skip
+    console.print(f"exported {len(m['sequences'])} sequence(s) to {out}; check it with `dualhuman export verify {out}`",
+                  highlight=False)  # fmt: skip
+
+
+@export.command("verify")
+@click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
+def export_verify(out: Path):
+    """Check an exported dataset: every file's SHA-256 against the manifest, arrays against the
+    schema (shapes, dtypes, no NaN), splits disjoint and complete, every sequence has what the
+    manifest promises. Never unpickles. Exit status 1 when a problem is found.
+
+    Example:  dualhuman export verify WS/export
+    """
+    from dualhuman_builder.export.verify import verify_export
+
+    problems = verify_export(out)
+    for p in problems:
+        console.print(f"[red]problem[/]: {p}", highlight=False)
+    if problems:
+        sys.exit(1)
+    console.print(f"[green]{out}: verified[/]", highlight=False)
+
+
+@export.command("shards")
+@click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("shard_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--split", type=click.Choice(["train", "test", "all"]), default="train", show_default=True)
+@click.option("--max-mb", type=click.FloatRange(min=0.001), default=256.0, show_default=True, help="Largest shard size (MiB).")
+def export_shards(out: Path, shard_dir: Path, split: str, max_mb: float):
+    """Write a split of the export OUT as WebDataset tar shards into SHARD_DIR (one sample per
+    sequence: motion, contacts, events, text, cameras, keypoints).
+
+    Example:  dualhuman export shards WS/export WS/shards --split train
+    """
+    from dualhuman_builder.export.shards import write_shards
+
+    paths = write_shards(out, shard_dir, max_bytes=int(max_mb * 2**20), split=split)
+    console.print(f"{len(paths)} shard(s) in {shard_dir}", highlight=False)
+
+
+def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) -> None:
+    from dualhuman_builder.export import convert
+
+    try:
+        doc = getattr(convert, f"to_{layout}")(out, dest, split=split, label_texts=label_texts)
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    c, unit = doc["counts"], "motions" if "motions" in doc else "sequences"
+    per = f" = {doc['motions']} motions" if "motions" in doc else ""
+    console.print(f"{layout}: {doc['sequences_converted']} sequence(s){per} ({c['train']} train, {c['test']} test {unit}), "
+                  f"{len(doc['skipped'])} skipped, {len(doc['texts_from_labels'])} captioned from labels -> {dest}",
+                  highlight=False, soft_wrap=True)  # fmt: skip
+
+
+_CONVERT_OPTIONS = [
+    click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path)),
+    click.argument("dest", type=click.Path(file_okay=False, path_type=Path)),
+    click.option("--split", type=click.Choice(["all", "train", "test"]), default="all", show_default=True,
+                 help="Convert only this split of the export."),
+    click.option("--label-texts/--no-label-texts", default=True, show_default=True,
+                 help="Caption a sequence without text from its labels ('two people interact: <label>.'); off: skip it."),
+]  # fmt: skip
+
+
+def _convert_options(f):
+    for deco in reversed(_CONVERT_OPTIONS):
+        f = deco(f)
+    return f
+
+
+@export.command("interhuman")
+@_convert_options
+def export_interhuman(out: Path, dest: Path, split: str, label_texts: bool):
+    """Convert the export OUT to InterGen's InterHuman layout in DEST (30 fps), so InterGen's
+    dataloader reads it unchanged (DATA_ROOT = DEST).
+
+    Writes motions_processed/person1|person2/<id>.npy (InterHuman's raw (T, 492) per-frame joints and
+    6D rotations, Z up, person a = person1), features/p1|p2/<id>.npy (the 262-dim features),
+    annots/<id>.txt (three or more sentences), train/val/test.txt (also under split/; val = test),
+    ignore_list.txt, global_mean/std.npy, and conversion.json (the per-sequence transform back to the
+    world frame, skipped sequences with reasons).
+
+    Example:  dualhuman export interhuman WS/export WS/interhuman
+    """
+    _convert("interhuman", out, dest, split, label_texts)
+
+
+@export.command("humanml3d")
+@_convert_options
+def export_humanml3d(out: Path, dest: Path, split: str, label_texts: bool):
+    """Convert the export OUT to HumanML3D's layout in DEST (20 fps, one motion per person: <id>_a,
+    <id>_b), for single-person text-to-motion code (T2M, MDM, ...).
+
+    Writes new_joint_vecs/<name>.npy (T-1, 263), new_joints/<name>.npy (T-1, 22, 3) canonical,
+    texts/<name>.txt (caption#tokens#0.0#0.0; tokens are lowercased words tagged OTHER, not spaCy's
+    lemmas and POS), Mean.npy/Std.npy over the train motions, train/val/test/all.txt (val = test),
+    and conversion.json.
+
+    Example:  dualhuman export humanml3d WS/export WS/humanml3d
+    """
+    _convert("humanml3d", out, dest, split, label_texts)

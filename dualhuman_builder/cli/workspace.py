@@ -1,0 +1,144 @@
+"""`dualhuman init`, `status`, `actor`, `rig`: workspaces, their actors and rigs."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from dualhuman_builder.cli.app import console, main
+
+
+@main.command()
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+def init(workspace: Path):
+    """Create a workspace folder WORKSPACE with an empty catalog (or reuse the one there).
+
+    The catalog is WORKSPACE/catalog.sqlite (SQLite, WAL mode); takes go under takes/ and
+    stage outputs under artifacts/<take>/<sequence>/<stage>/.
+    """
+    from dualhuman_builder.workspace import Workspace
+
+    existed = (workspace / "catalog.sqlite").exists()
+    with Workspace.init(workspace) as ws:
+        console.print(f"{'reusing' if existed else 'created'} workspace {ws.root} (catalog {ws.catalog_path})")
+
+
+@main.command()
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--verify", is_flag=True, help="Also re-hash every artifact and take file against the catalog.")
+@click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
+def status(workspace: Path, verify: bool, as_json: bool):
+    """Show takes and sequences x pipeline stages: done, failed, running or interrupted, with
+    each run's parameters hash. Read-only: works on a workspace you cannot write to."""
+    from dualhuman_builder.cli.console import status_table
+    from dualhuman_builder.pipeline import STAGE_NAMES
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        rows = ws.status_rows()
+        problems = ws.verify() if verify else []
+        if as_json:
+            click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))
+        else:
+            console.print(status_table(rows, STAGE_NAMES, f"workspace {ws.root}"))
+            if not rows:
+                console.print("[dim]no takes yet[/]")
+            if verify:
+                for p in problems:
+                    console.print(f"[red]problem:[/] {p}")
+                console.print("[green]all artifacts match the catalog[/]" if not problems else f"{len(problems)} problem(s)")
+    if problems:
+        sys.exit(1)
+
+@main.group()
+def actor():
+    """Actors in a workspace: stature, gender and anny shape."""
+
+
+@actor.command("add")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("name")
+@click.option("--height", type=float, required=True, help="Standing height in metres (e.g. 1.74).")
+@click.option("--gender", type=click.Choice(["female", "male", "neutral"]), default="neutral", show_default=True)
+@click.option("--no-shape", is_flag=True, help="Do not solve an anny shape from the height now.")
+def actor_add(workspace: Path, name: str, height: float, gender: str, no_shape: bool):
+    """Register actor NAME (or update them). Unless --no-shape, their anny shape is solved from
+    the height (adult age, average build) until a calibration stage refines it."""
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        shape = None
+        if not no_shape:
+            from dualhuman_builder.body.model import get_body_model
+            from dualhuman_builder.body.shape import shape_for_stature
+
+            shape = shape_for_stature(get_body_model(), height, gender)
+        a = ws.add_actor(name, height, gender, shape=shape, shape_source=None if no_shape else "stature")
+    shape_text = "not solved" if a.shape is None else " ".join(f"{k}={v:.3f}" for k, v in a.shape.items())
+    console.print(f"actor {a.name}: {a.height_m:.3f} m, {a.gender}, anny shape {shape_text}", highlight=False)
+
+
+@actor.command("list")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+def actor_list(workspace: Path):
+    """List the actors of a workspace."""
+    from rich.table import Table
+
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        t = Table(title="actors", title_justify="left")
+        for c in ("name", "height (m)", "gender", "shape", "shape from"):
+            t.add_column(c)
+        for a in ws.actors():
+            shape = "" if a.shape is None else " ".join(f"{k}={v:.2f}" for k, v in a.shape.items())
+            t.add_row(a.name, f"{a.height_m:.3f}" if a.height_m else "", a.gender or "", shape, a.shape_source or "")
+        console.print(t)
+
+
+@main.group()
+def rig():
+    """Rig files: sources by URL, actors, character IDs and tracker placement (rigs/*.toml)."""
+
+
+@rig.command("check")
+@click.argument("rig_file", type=click.Path(dir_okay=False, path_type=Path))
+def rig_check(rig_file: Path):
+    """Check RIG_FILE: sources, actors, MVN character IDs, tracker segments, and its segment
+    mapping's bones. Prints a summary, or the first problem with its fix (exit status 2)."""
+    from dualhuman_builder.rig import load_rig
+
+    r = load_rig(rig_file)
+    console.print(f"rig {r.name!r} is valid: {len(r.sources)} sources, {len(r.actors)} actors, "
+                  f"mapping {r.mapping.path.name}")  # fmt: skip
+    for s in r.sources:
+        console.print(f"  source {s.name}: {s.url}", highlight=False)
+    for a in r.actors:
+        console.print(f"  actor {a.name}: source {a.source}, character {a.character}, {len(a.trackers)} trackers",
+                      highlight=False)  # fmt: skip
+
+
+@rig.command("add")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("rig_file", type=click.Path(dir_okay=False, path_type=Path))
+def rig_add(workspace: Path, rig_file: Path):
+    """Check RIG_FILE and store it in WORKSPACE's catalog (a newer version replaces the old)."""
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace) as ws:
+        name = ws.add_rig(rig_file)
+    console.print(f"rig {name!r} stored in {workspace}")
+
+
+@rig.command("list")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+def rig_list(workspace: Path):
+    """List the rigs stored in WORKSPACE."""
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.open(workspace, readonly=True) as ws:
+        for name, sha in ws.rigs():
+            console.print(f"{name}  sha256 {sha[:16]}", highlight=False)

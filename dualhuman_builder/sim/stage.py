@@ -1,0 +1,159 @@
+"""The ``scene`` and ``devices`` workspace stages of a simulated take, and :func:`simulate_take`,
+which runs them and the ``capture`` stage for one take (idempotent, crash-safe: see
+:mod:`dualhuman_builder.workspace.runner`).
+
+Artifacts (under ``WS/artifacts/TAKE/SEQUENCE/<stage>/``):
+
+* ``scene``: ``scene.npz`` (:class:`~dualhuman_builder.sim.scenes.Scene`: sequence, per-vertex
+  signed distances to the partner, stance, phases), ``sequence.npz`` (the
+  :class:`~dualhuman_builder.tracks.InteractionSequence` alone) and, for an interaction (not a
+  calibration take), previews: ``meshes/<actor>_{first,contact}.ply``, ``preview.glb`` (both
+  bodies at the contact, coloured), ``preview.png`` (a Mitsuba still) and ``strip.png`` (six
+  moments, ground-truth contact vertices painted yellow);
+* ``devices``: ``devices.json`` (samples per stream, rates, and the errors the simulators realised:
+  clock offsets and drifts, suit drift, tracker losses).
+
+The ``capture`` stage then records the scene's simulated studio through real loopback transports
+(``sim://SCENE.npz?devices=SEED``, :mod:`dualhuman_builder.capture.stage`).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Callable, Sequence
+
+import numpy as np
+
+from dualhuman_builder.workspace.runner import Stage
+
+SCENE_FILE, SEQUENCE_FILE, DEVICES_FILE = "scene.npz", "sequence.npz", "devices.json"
+SCENE = Stage("scene", per="sequence",
+              artifacts=(SCENE_FILE, SEQUENCE_FILE, "preview.png", "strip.png", "preview.glb", "meshes/{actor}_first.ply",
+                         "meshes/{actor}_contact.ply"),
+              command="dualhuman sim take {ws} --take {take}")  # fmt: skip
+DEVICES = Stage("devices", per="sequence", artifacts=(DEVICES_FILE,), reads=("scene",),
+                command="dualhuman sim take {ws} --take {take}")  # fmt: skip
+#: Colours of the two actors in the previews (linear RGB).
+ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
+#: Annotator name of the labels a generated scene comes with.
+SCENE_ANNOTATOR = "dualhuman-scene"
+
+
+def run_scene(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]], shapes: Sequence[dict],
+              model=None, force: bool = False, log: Callable[[str], None] = print):  # fmt: skip
+    """The ``scene`` stage: a generated scene (:func:`~dualhuman_builder.sim.scenes.make_scene`)
+    with ``params`` (``type``, ``seed``, ``fps``, and any other
+    :class:`~dualhuman_builder.sim.scenes.SceneParams` field) of the two ``actors`` (``(name,
+    stature m, gender)``) with anny ``shapes``. Returns the StageResult."""
+    from dualhuman_builder.sim.scenes import GENERATOR_VERSION
+
+    calibration = params["type"] == "calibration"
+
+    def compute(out):
+        from dualhuman_builder.body.model import get_body_model
+        from dualhuman_builder.sim.scenes import SceneParams, make_scene
+
+        body = model or get_body_model()
+        log(f"generating a {params['type']} (seed {params['seed']})...")
+        sc = make_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in actors), **params),
+                        model=body, log=log)  # fmt: skip
+        sc.save(out.path(SCENE_FILE))
+        sc.sequence.save(out.path(SEQUENCE_FILE))
+        if calibration:
+            return {"quality": sc.stats}
+        log(f"scene quality: penetration {1000 * sc.stats['max_penetration_m']:.1f} mm, contact on "
+            f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
+        return {**write_scene_views(body, sc, out), "quality": sc.stats}
+
+    return ws.run_stage("scene", compute, take=take, sequence=sequence,
+                        params={"actors": tuple(actors), "shapes": list(shapes), **params},
+                        version=str(GENERATOR_VERSION), force=force)  # fmt: skip
+
+
+def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, log: Callable[[str], None] = print):
+    """The ``devices`` stage: the simulated studio of the sequence's scene with device seed
+    ``seed`` (:func:`~dualhuman_builder.sim.studio.simulate_studio`), summarised. Returns the StageResult."""
+
+    def compute(out):
+        from dualhuman_builder.sim.scenes import Scene
+        from dualhuman_builder.sim.studio import simulate_studio
+
+        sc = Scene.load(SCENE.artifact(ws, take, SCENE_FILE, sequence))
+        summary = studio_summary(simulate_studio(sc.sequence, seed=seed, progress=log))
+        with open(out.path(DEVICES_FILE), "w") as f:
+            json.dump(summary, f, indent=2)
+        return {"samples": sum(summary["samples"].values())}
+
+    return ws.run_stage("devices", compute, take=take, sequence=sequence, params={"seed": seed},
+                        depends_on=[("scene", sequence)], force=force)  # fmt: skip
+
+
+def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]],
+                  shapes: Sequence[dict], *, speed: float = 1.0, model=None, force: bool = False,
+                  log: Callable[[str], None] = print) -> dict:  # fmt: skip
+    """Register ``take`` (rig ``sim``, the ``actors``) with its one ``sequence`` if new, then run
+    its ``scene``, ``devices`` and ``capture`` stages: a generated scene, its simulated devices
+    (device seed ``params["seed"]``), and their recording through real loopback transports at
+    ``speed`` times real time. The take's ``sync``, ``fuse`` and ``fit`` stages then read that
+    recording. Returns ``{stage: StageResult}``."""
+    from dualhuman_builder.capture.stage import run_capture
+    from dualhuman_builder.sim.scenes import NATURAL_DURATION
+
+    calibration = params["type"] == "calibration"
+    if take not in ws.takes():
+        ws.add_take(take, rig="sim", actors=[a[0] for a in actors], meta={"simulated": True, "calibration": calibration})
+    if sequence not in [s.name for s in ws.sequences(take)]:
+        seconds = params.get("duration") or NATURAL_DURATION[params["type"]]
+        ws.add_sequence(take, sequence, 0, int(round(seconds * params["fps"])), labels=(params["type"],))
+    results = {"scene": run_scene(ws, take, sequence, params, actors, shapes, model=model, force=force, log=log)}
+    results["devices"] = run_devices(ws, take, sequence, params["seed"], force=force, log=log)
+    scene_path = SCENE.artifact(ws, take, SCENE_FILE, sequence)
+    url = f"sim://{scene_path.resolve()}?devices={params['seed']}"
+    results["capture"] = run_capture(ws, take, sequence, url, speed=speed, params={"seed": params["seed"], "speed": speed},
+                                     depends_on=[("scene", sequence)], force=force, log=log)  # fmt: skip
+    return results
+
+
+def studio_summary(studio) -> dict:
+    """What a person wants to know about a simulated take: samples per stream, rates, and the
+    errors the simulators realised (clock offsets, suit drift, tracker losses)."""
+    suits = {f"suit/{s.character}": {"rate_hz": s.rate_hz, "heading_drift_deg_per_min": round(float(np.degrees(s.heading_drift_rate_rad_s) * 60), 3),
+                                     "root_drift_at_end_m": np.round(s.root_drift[-1], 4).tolist()}
+             for s in studio.suits}  # fmt: skip
+    trackers = {}
+    for tr in studio.trackers:
+        for i, serial in enumerate(tr.serials):
+            trackers[f"vive/{serial}"] = {"segment": tr.segments[i], "rate_hz": tr.rate_hz,
+                                          "losses": int((tr.loss_tracker == i).sum()),
+                                          "invalid_samples": int((~tr.valid[i]).sum())}  # fmt: skip
+    clocks = {name: {"offset_s": c.offset_s, "drift_ppm": c.drift_ppm}
+              for name, c in [("suits", studio.suits[0].clock), ("trackers", studio.trackers[0].clock),
+                              *((f"imu/{k}", v.clock) for k, v in studio.imus.items())]}  # fmt: skip
+    return {"samples": studio.counts(), "suits": suits, "trackers": trackers, "clocks": clocks,
+            "imus": {k: {"segment": v.segment, "rate_hz": v.rate_hz} for k, v in studio.imus.items()}}  # fmt: skip
+
+
+def write_scene_views(model, sc, out) -> dict:
+    """PLY meshes of the first frame and of the middle of the contact, a coloured GLB of the
+    latter, the still ``preview.png`` and the contact strip ``strip.png``."""
+    import trimesh
+
+    from dualhuman_builder.render.preview import render_preview, render_strip
+
+    seq = sc.sequence
+    faces = model.faces.cpu().numpy()
+    a, b = sc.contact_phases[0]
+    touch = min(int(round(0.5 * (a + b) * seq.fps)), seq.num_frames - 1)
+    shown = []
+    for track, colour in zip(seq.actors, ACTOR_COLOURS):
+        verts = track.vertices()
+        for tag, frame in (("first", 0), ("contact", touch)):
+            mesh = trimesh.Trimesh(verts[frame], faces, process=False)
+            mesh.export(out.path(f"meshes/{track.actor}_{tag}.ply"))
+        rgba = np.array([*[int(255 * c) for c in colour], 255], dtype=np.uint8)
+        shown.append(trimesh.Trimesh(verts[touch], faces, vertex_colors=np.tile(rgba, (len(verts[touch]), 1)), process=False))
+    trimesh.Scene(shown).export(out.path("preview.glb"))
+    info = render_preview([(m.vertices, faces, c) for m, c in zip(shown, ACTOR_COLOURS)], out.path("preview.png"))
+    strip = render_strip(seq, faces, out.path("strip.png"), frames=6, colours=ACTOR_COLOURS, highlight=sc.contact_labels())
+    return {"preview_variant": info["variant"], "preview_seconds": round(info["seconds"], 3),
+            "strip_seconds": round(strip["seconds"], 3), "contact_frame": touch}  # fmt: skip
