@@ -24,10 +24,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from dualhuman_builder.sim.stage import DEFAULT_ACTORS
+
 DEMO_TAKE = "DEMO"
 DEMO_SEQUENCE = "handshake"
 DEMO_SCENE = {"type": "handshake", "seed": 3, "fps": 30.0}
-DEMO_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
+DEMO_ACTORS = DEFAULT_ACTORS
 #: The calibration take: the same actors and simulated devices (seed), another motion.
 CALIB_TAKE = "CALIB"
 CALIB_SEQUENCE = "calibration"
@@ -51,9 +53,8 @@ class DemoResult:
 def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None] = print) -> DemoResult:
     """Run the demo pipeline into ``workspace`` (created if missing); returns what it wrote."""
     from dualhuman_builder.body.model import get_body_model
-    from dualhuman_builder.body.shape import shape_for_stature
     from dualhuman_builder.resources import RIGS_DIR
-    from dualhuman_builder.sim.stage import simulate_take
+    from dualhuman_builder.sim.stage import ensure_actors, simulate_take
     from dualhuman_builder.workspace import Workspace
 
     t0 = time.perf_counter()
@@ -62,14 +63,7 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         log(f"workspace {ws.root}")
         ws.add_rig(RIGS_DIR / "sim.toml")
         model = get_body_model()
-        shapes = []
-        for name, height, gender in DEMO_ACTORS:
-            known = {a.name: a for a in ws.actors()}.get(name)
-            if known is None or known.shape is None:
-                shape = shape_for_stature(model, height, gender)
-                ws.add_actor(name, height, gender, shape=shape, shape_source="stature")
-                log(f"actor {name}: {height:.2f} m {gender}, anny shape solved from stature")
-            shapes.append(ws.actor(name).shape)
+        shapes = ensure_actors(ws, DEMO_ACTORS, model, log)
         for take, seq, scene_params in ((DEMO_TAKE, DEMO_SEQUENCE, DEMO_SCENE), (CALIB_TAKE, CALIB_SEQUENCE, CALIB_SCENE)):
             ran = simulate_take(ws, take, seq, scene_params, DEMO_ACTORS, shapes, speed=DEMO_CAPTURE_SPEED, model=model, log=log)
             prefix, tag = ("", "") if take == DEMO_TAKE else (f"{take}/", f" ({take})")

@@ -192,3 +192,48 @@ def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplica
                       highlight=False)  # fmt: skip
     if play.pty is not None and play.pty.dropped_bytes:
         console.print(f"xbus: {play.pty.dropped_bytes} bytes dropped: nobody read {play.pty_path} fast enough", highlight=False)
+
+
+@sim.command("take")
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--take", required=True, help="Take name (letters, digits, - and _), e.g. T001.")
+@click.option("--type", "scene_type",
+              type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration"]),
+              default="handshake", show_default=True,
+              help="The interaction, or 'calibration' for the calibration take of a studio day (see `dualhuman sync "
+                   "--mounts-from`).")  # fmt: skip
+@click.option("--seed", type=int, default=0, show_default=True, help="Seeds the scene's variations and the device errors.")
+@click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
+@click.option("--sequence", default=None, help="Name of the take's one sequence (default: the scene type).")
+@click.option("--speed", type=click.FloatRange(min=0.1, max=20.0), default=1.0, show_default=True,
+              help="The devices play this many times faster than real time while recorded.")
+@click.option("--force", is_flag=True, help="Run the stages again even when they are up to date.")
+def sim_take(workspace: Path, take: str, scene_type: str, seed: int, fps: float, sequence: str | None, speed: float,
+             force: bool):  # fmt: skip
+    """Simulate a take into WORKSPACE (created if missing): its scene, devices and capture stages.
+
+    A generated ground-truth scene of the two simulated actors sim-a (1.68 m) and sim-b (1.82 m),
+    registered with the rig sim.toml if the workspace lacks them; the suits, trackers and IMUs of
+    rigs/sim.toml simulated from it; and their recording through real loopback transports, checked
+    and replayed bit for bit. The take then goes through the rest of the pipeline like a recorded
+    one (`dualhuman fit WS --take T`). Run again, it does nothing.
+
+    \b
+    Example:
+      dualhuman sim take WS --take CAL --type calibration --seed 3
+      dualhuman sim take WS --take T001 --type hug --seed 3
+      dualhuman fit WS --take T001 --mounts-from CAL
+    """
+    from dualhuman_builder.resources import RIGS_DIR
+    from dualhuman_builder.sim.stage import DEFAULT_ACTORS, ensure_actors, simulate_take
+    from dualhuman_builder.workspace import Workspace
+
+    with Workspace.init(workspace) as ws:
+        ws.add_rig(RIGS_DIR / "sim.toml")
+        shapes = ensure_actors(ws, DEFAULT_ACTORS, log=console.print)
+        params = {"type": scene_type, "seed": seed, "fps": fps}
+        ran = simulate_take(ws, take, sequence or scene_type, params, DEFAULT_ACTORS, shapes, speed=speed, force=force,
+                            log=console.print)  # fmt: skip
+        for stage, res in ran.items():
+            console.print(f"{stage}: {'up to date' if res.skipped else 'done'}", highlight=False)
+

@@ -33,10 +33,32 @@ SCENE = Stage("scene", per="sequence",
               command="dualhuman sim take {ws} --take {take}")  # fmt: skip
 DEVICES = Stage("devices", per="sequence", artifacts=(DEVICES_FILE,), reads=("scene",),
                 command="dualhuman sim take {ws} --take {take}")  # fmt: skip
+#: The two simulated actors a take gets when none are named: ``(name, stature m, gender)``.
+DEFAULT_ACTORS = (("sim-a", 1.68, "female"), ("sim-b", 1.82, "male"))
 #: Colours of the two actors in the previews (linear RGB).
 ACTOR_COLOURS = ((0.80, 0.35, 0.25), (0.25, 0.45, 0.80))
 #: Annotator name of the labels a generated scene comes with.
 SCENE_ANNOTATOR = "dualhuman-scene"
+
+
+def ensure_actors(ws, actors: Sequence[tuple[str, float, str]], model=None,
+                  log: Callable[[str], None] = print) -> list[dict]:  # fmt: skip
+    """Register each ``(name, stature m, gender)`` actor the workspace lacks (or knows without a
+    shape) with an anny shape solved from its stature; returns the actors' shapes in order."""
+    from dualhuman_builder.body.shape import shape_for_stature
+
+    shapes = []
+    for name, height, gender in actors:
+        known = {a.name: a for a in ws.actors()}.get(name)
+        if known is None or known.shape is None:
+            if model is None:
+                from dualhuman_builder.body.model import get_body_model
+
+                model = get_body_model()
+            ws.add_actor(name, height, gender, shape=shape_for_stature(model, height, gender), shape_source="stature")
+            log(f"actor {name}: {height:.2f} m {gender}, anny shape solved from stature")
+        shapes.append(ws.actor(name).shape)
+    return shapes
 
 
 def run_scene(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]], shapes: Sequence[dict],
