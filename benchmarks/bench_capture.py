@@ -152,7 +152,7 @@ def replay_throughput(scene: Path, workdir: Path, runs: int) -> dict:
     length (the suits' device-clock span)."""
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.capture.replay import replay_samples
-    from dualhuman_builder.capture.session import capture_take, plan_capture
+    from dualhuman_builder.capture.recording import capture_take, plan_capture
 
     path = workdir / "replay.mcap"
     capture_take(plan_capture(sources=[f"sim://{scene}?devices=3"]), path, take="replay", sim_speed=4.0)

@@ -1,4 +1,4 @@
-"""Shared fixtures: the body model is built once per test session (anny's cache makes that < 1 s)."""
+"""Shared fixtures: the body model is built once per test run (anny's cache makes that < 1 s)."""
 
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ time in nanoseconds.
   device family (:mod:`.mvn_udp`, :mod:`.vive_udp`, :mod:`.xbus_serial`, :mod:`.mti_can`,
   :mod:`.vive_usb`; ``sim://`` is registered by :mod:`dualhuman_builder.sim.source` through an
   entry point), wire formats in :mod:`.wire`;
-* :mod:`.recorder` and :mod:`.session` — recording takes (live status, clean stops);
+* :mod:`.recorder` and :mod:`.recording` — recording takes (live status, clean stops);
   :mod:`.log` — take files (MCAP): writing, reading, check, repair, dump;
 * :mod:`.replay` — samples back to the pipeline, or raw packets back onto the wire;
 * :mod:`.importers` — MVNX and BVH files;

@@ -125,7 +125,7 @@ class Source(abc.ABC):
     kind: str = ""
     PARAMS: tuple[str, ...] = ()
     #: True for a URL that stands for a whole studio (``sim://``): recording it opens
-    #: :meth:`loopback_session` (every device on its own transport) rather than this one source.
+    #: :meth:`loopback_studio` (every device on its own transport) rather than this one source.
     PLAYS_STUDIO: bool = False
 
     def __init__(self, url: str):
@@ -146,7 +146,7 @@ class Source(abc.ABC):
         raise SourceError(f"{cls.__name__} has no decoder")
 
     @classmethod
-    def loopback_session(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
+    def loopback_studio(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
         """For :attr:`PLAYS_STUDIO` sources: the studio ``url`` names, played onto loopback
         transports and opened as live sources. Returns an object with ``sources`` (``[(name,
         Source)]``), ``actors`` (rig actors), ``rig_text``, ``finished()`` and ``close()``."""

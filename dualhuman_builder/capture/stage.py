@@ -4,7 +4,7 @@
 ``dualhuman capture -w WS --take T`` records a live studio and registers the file with the take;
 this stage is the same recording made reproducible as a stage of a sequence: the sources (any
 source URL, typically a simulated studio played on loopback transports, ``sim://SCENE.npz``) are
-recorded with :func:`~dualhuman_builder.capture.session.capture_take`, the file is checked
+recorded with :func:`~dualhuman_builder.capture.recording.capture_take`, the file is checked
 (:func:`~dualhuman_builder.capture.log.reader.check_take`) and its raw packets re-decoded to prove
 they give the recorded samples bit for bit (:func:`~dualhuman_builder.capture.replay.verify_replay`).
 
@@ -33,7 +33,7 @@ def record_take(url: str, take_path: Path, *, take: str, speed: float = 1.0, log
     :class:`~dualhuman_builder.errors.DualhumanError` when the recording failed."""
     from dualhuman_builder.capture.log.reader import check_take
     from dualhuman_builder.capture.replay import verify_replay
-    from dualhuman_builder.capture.session import capture_take, plan_capture
+    from dualhuman_builder.capture.recording import capture_take, plan_capture
 
     log(f"recording {url} ({speed:g}x real time)...")
     res = capture_take(plan_capture(sources=[url]), take_path, take=take, sim_speed=speed, progress=log)

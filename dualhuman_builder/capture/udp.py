@@ -1,7 +1,7 @@
 """The UDP side shared by ``mvn+udp://`` and ``vive+udp://``: bind, filter senders, read in batches.
 
 URL: ``SCHEME://HOST:PORT[?allow=IP,IP&rcvbuf=BYTES]``. ``HOST`` is the address to bind, exactly as
-the rig names it (``0.0.0.0`` for every interface; empty means ``127.0.0.1``: an ad-hoc session
+the rig names it (``0.0.0.0`` for every interface; empty means ``127.0.0.1``: an ad-hoc capture
 listens on loopback only unless told otherwise); ``PORT`` defaults to the device family's port.
 ``allow`` limits the senders: a datagram from any other address is dropped and counted in
 ``rejected_senders`` (the first from each new address is also reported as an event), so a stray

@@ -83,7 +83,7 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
 
     from rich.live import Live
 
-    from dualhuman_builder.capture.session import capture_take, default_take_path, plan_capture
+    from dualhuman_builder.capture.recording import capture_take, default_take_path, plan_capture
     from dualhuman_builder.cli.console import live_status_table
 
     plan = plan_capture(rig_file, sources, actors)

@@ -33,7 +33,7 @@ def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: 
     ``speed`` times real time. Returns ``(take_path, scene)``. Keep ``speed`` at 1 when the sync is
     scored: a 2-core machine records losslessly up to ~2x (``benchmarks/bench_capture.py``), and a
     hug recorded at 4x synced 121 ms off (0.25 ms at 1x)."""
-    from dualhuman_builder.capture.session import capture_take, plan_capture
+    from dualhuman_builder.capture.recording import capture_take, plan_capture
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
     out = Path(out_dir)

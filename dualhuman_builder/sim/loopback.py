@@ -17,7 +17,7 @@ from dualhuman_builder.capture.sources import Source, open_source
 from dualhuman_builder.rig import Rig, RigActor, RigSource
 
 
-class SimulatedStudioSession:
+class LoopbackStudio:
     """Open the loopback sources, start the players. ``sources``: ``[(name, Source)]`` to
     record; ``actors``: the rig's actors; :meth:`finished` is True once every player is done
     (plus ``grace_s`` so the last datagrams are read). ``speed``: playback multiple of real

@@ -13,7 +13,7 @@ Layout: actor 0 starts at the origin facing +Z, actor 1 ``approach_distance`` me
 it (except where a type says otherwise); the floor is y = 0.
 
 Types (:data:`SCENE_TYPES`): ``handshake``, ``hug``, ``high_five``, ``push``, ``pat_on_back``,
-``dance_turn``; and ``calibration`` (:data:`CALIBRATION_TYPE`), the session's calibration motion
+``dance_turn``; and ``calibration`` (:data:`CALIBRATION_TYPE`), the calibration motion of a studio day
 with no interaction. Each is a choreography function below; all share the same timing vocabulary
 (:mod:`.timeline`) and are scaled by ``tempo``.
 """
@@ -32,9 +32,9 @@ from dualhuman_builder.sim.performer import SIDES, ArmTrack, Controls, FootTrack
 from dualhuman_builder.sim.timeline import Step, foot_track, keyframes, window
 
 SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn")
-#: The session's calibration motion (:func:`calibration`): no interaction, each actor on their own
+#: The calibration motion of a studio day (:func:`calibration`): no interaction, each actor on their own
 #: turns every tracked segment, so the trackers' mounts can be solved and carried over to the
-#: session's other takes (``dualhuman sync --mounts-from``). Not one of :data:`SCENE_TYPES`.
+#: day's other takes (``dualhuman sync --mounts-from``). Not one of :data:`SCENE_TYPES`.
 CALIBRATION_TYPE = "calibration"
 #: Every type :class:`SceneParams` accepts.
 ALL_TYPES = (*SCENE_TYPES, CALIBRATION_TYPE)
@@ -1046,7 +1046,7 @@ def dance_turn(t, perfs, params, rng) -> Choreography:
 
 
 def calibration(t, perfs, params, rng) -> Choreography:
-    """The session's calibration motion, both actors at once, side by side ``approach_distance``
+    """The calibration motion of a studio day, both actors at once, side by side ``approach_distance``
     (default 2 m) apart and never touching: from a relaxed stand each bows, bends to either side
     and twists its trunk (the pelvis tipping, rolling and turning with it over planted feet), nods,
     raises both arms forward, squats, opens the arms out to the sides, then turns once to its right

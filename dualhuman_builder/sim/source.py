@@ -11,7 +11,7 @@ The scheme is registered into capture's source registry through the ``dualhuman_
 entry point (``pyproject.toml``). Recording a ``sim://`` source (``dualhuman capture --source
 sim://...``) does not iterate this class: :attr:`SimSource.PLAYS_STUDIO` makes the recorder play
 the simulated studio onto real loopback transports and record them through the live sources
-(:meth:`SimSource.loopback_session`, :mod:`dualhuman_builder.sim.loopback`).
+(:meth:`SimSource.loopback_studio`, :mod:`dualhuman_builder.sim.loopback`).
 """
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ class SimSource(Source):
     PLAYS_STUDIO = True
 
     @classmethod
-    def loopback_session(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
+    def loopback_studio(cls, url: str, *, speed: float = 1.0, faults=None, progress=None):
         """The studio of ``url`` on loopback transports: a
-        :class:`~dualhuman_builder.sim.loopback.SimulatedStudioSession`."""
-        from dualhuman_builder.sim.loopback import SimulatedStudioSession
+        :class:`~dualhuman_builder.sim.loopback.LoopbackStudio`."""
+        from dualhuman_builder.sim.loopback import LoopbackStudio
 
-        return SimulatedStudioSession(url, speed=speed, faults=faults, progress=progress)
+        return LoopbackStudio(url, speed=speed, faults=faults, progress=progress)
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
         from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene

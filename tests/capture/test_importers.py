@@ -76,7 +76,7 @@ def calibration(suit):
 
 @pytest.fixture(scope="module")
 def mvnx_file(tmp_path_factory, suit, calibration):
-    path = tmp_path_factory.mktemp("mvnx") / "session 1.mvnx"
+    path = tmp_path_factory.mktemp("mvnx") / "take 1.mvnx"
     write_mvnx(path, suit.to_track(), arrays=mvnx_arrays_from_suit(suit), calibration=calibration,
                ergonomic_joints=ERGONOMIC_JOINTS, start_epoch_ms=1_700_000_000_000, subject={"label": "alice"})  # fmt: skip
     return path
@@ -373,9 +373,9 @@ def test_import_file_makes_a_catalogued_take(tmp_path, mvnx_file, suit):
     with Workspace.init(tmp_path / "ws") as ws:
         ws.add_actor("alice", 1.7)
         r = import_file(ws, mvnx_file, actor="alice")
-        assert r.take == "session_1" and r.frames == 121 and r.fps == FPS and r.segments == 23
+        assert r.take == "take_1" and r.frames == 121 and r.fps == FPS and r.segments == 23
         assert r.calibration_poses == ("identity", "tpose", "tpose-isb") and r.subject == "alice"
-        take = ws.take("session_1")
+        take = ws.take("take_1")
         assert take.actors == ("alice",) and take.sample_counts == {"skeleton": 121, "calibration": 3}
         assert take.duration_s == pytest.approx(121 / FPS)
         assert take.start_time == "2023-11-14T22:13:20+00:00"
@@ -383,17 +383,17 @@ def test_import_file_makes_a_catalogued_take(tmp_path, mvnx_file, suit):
         assert take.meta["fps"] == FPS and take.meta["subject_label"] == "alice"
         assert take.meta["calibration_poses"] == ["identity", "tpose", "tpose-isb"]
         files = {f["path"]: f for f in take.files}
-        folder = "takes/session_1/"
-        assert set(files) == {folder + "session 1.mvnx", folder + "skeleton.npz", folder + "mvnx_extras.npz"}
-        assert files[folder + "session 1.mvnx"]["sha256"] == sha256_file(mvnx_file)
-        assert ws.verify_take_files("session_1") == []
+        folder = "takes/take_1/"
+        assert set(files) == {folder + "take 1.mvnx", folder + "skeleton.npz", folder + "mvnx_extras.npz"}
+        assert files[folder + "take 1.mvnx"]["sha256"] == sha256_file(mvnx_file)
+        assert ws.verify_take_files("take_1") == []
         saved = SkeletonTrack.load(r.track_path)
         np.testing.assert_array_equal(saved.orientations, r.track.orientations)
         assert saved.actor == "alice" and saved.fps == FPS
         arrays, meta = load_npz(r.extras_path, "MvnxExtras", 1)
         np.testing.assert_array_equal(arrays["frame.jointAngle"], read_mvnx(mvnx_file).arrays["jointAngle"])
         assert arrays["calibration.tpose.orientations"].shape == (23, 4) and meta["sensors"][0] == "Pelvis"
-        with pytest.raises(WorkspaceError, match="take 'session_1' already exists"):
+        with pytest.raises(WorkspaceError, match="take 'take_1' already exists"):
             import_file(ws, mvnx_file)
         with pytest.raises(WorkspaceError, match="no actor 'bob'"):
             import_file(ws, mvnx_file, take="other", actor="bob")
@@ -408,7 +408,7 @@ def test_cli_import_mvnx_and_bvh(tmp_path, mvnx_file, suit):
     run("init", ws)
     r = run("import", ws, mvnx_file, "--take", "t1")
     assert r.exit_code == 0, r.output
-    assert "imported session 1.mvnx as take 't1': 121 frames at 60 fps (2.02 s), 23 segments" in r.output
+    assert "imported take 1.mvnx as take 't1': 121 frames at 60 fps (2.02 s), 23 segments" in r.output
     assert "calibration poses: identity, tpose, tpose-isb" in r.output and "jointAngleErgo" in r.output
     bvh = write_bvh(tmp_path / "walk.bvh", suit.to_track())
     r = run("import", ws, bvh)

@@ -70,7 +70,7 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     fitted = InteractionSequence.load(out["bodies.npz"])
     sync = json.loads(out["sync.json"].read_text())
     assert abs(sync["clocks"]["source:trackers"]["offset_s"] - 0.25) < 0.005
-    # the session's calibration take (same devices, actors turning every segment) lent its mounts
+    # the studio day's calibration take (same devices, actors turning every segment) lent its mounts
     assert Scene.load(out["CALIB/scene.npz"]).params.type == "calibration" and "CALIB/take.mcap" in out
     assert sync["mounts_from"]["take"] == "CALIB"
     assert all(len(sync["mounts_from"][a]["carried"]) == 6 for a in ("sim-a", "sim-b")), sync["mounts_from"]

@@ -58,7 +58,7 @@ def test_scene_quality_contract(kind, seed, body_model):
 
 
 def test_the_calibration_scene_turns_every_tracked_segment_both_ways(body_model):
-    """The session's calibration motion (``calibration``, not an interaction): the actors never
+    """The calibration motion of a studio day (``calibration``, not an interaction): the actors never
     touch, the contract holds, and every segment a tracker is strapped to turns about the vertical
     (the spin: tells an offset from the suit's drift) and every one but the flat-footed feet tilts
     away from it (tells a mounting rotation from the suit's heading)."""

@@ -1,11 +1,11 @@
-"""A capture session from Python or the CLI: which sources, who wears what, where the take goes.
+"""Recording a take from Python or the CLI: which sources, who wears what, where the take goes.
 
 :func:`plan_capture` turns a rig file or ad-hoc ``--source`` / ``--actor`` arguments into the
 sources to open and the actor bindings; :func:`capture_take` opens them, records a take
 (:class:`~dualhuman_builder.capture.recorder.Recorder`) and registers it in a workspace catalog
 with its checksum. A URL that stands for a whole studio (``sim://``,
 :attr:`~dualhuman_builder.capture.sources.Source.PLAYS_STUDIO`) is recorded through real loopback
-transports (its source's :meth:`~dualhuman_builder.capture.sources.Source.loopback_session`).
+transports (its source's :meth:`~dualhuman_builder.capture.sources.Source.loopback_studio`).
 
 Ad-hoc arguments:
 
@@ -108,14 +108,14 @@ def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: flo
     """Open the plan's sources, record until ``duration`` (a simulated studio: until it has played),
     close, and register the take in ``workspace`` when given. Returns the :class:`TakeResult`;
     a failure mid-take (device lost, disk full) is in ``result.error`` with the file kept."""
-    session = None
+    studio = None
     opened: list[tuple[str, Source]] = []
     try:
         if plan.simulated is not None:
-            session = source_class(plan.simulated).loopback_session(plan.simulated, speed=sim_speed, faults=sim_faults,
+            studio = source_class(plan.simulated).loopback_studio(plan.simulated, speed=sim_speed, faults=sim_faults,
                                                                     progress=progress)  # fmt: skip
-            opened, actors, rig_text = session.sources, session.actors, session.rig_text
-            until = session.finished
+            opened, actors, rig_text = studio.sources, studio.actors, studio.rig_text
+            until = studio.finished
         else:
             for name, url in plan.sources:
                 if progress:
@@ -126,8 +126,8 @@ def capture_take(plan: CapturePlan, out: str | Path, *, take: str, duration: flo
                             extra_meta={"rig_name": plan.rig_name or "", "simulated": plan.simulated or ""})  # fmt: skip
         result = recorder.run(duration, until=until, on_status=on_status)
     finally:
-        if session is not None:
-            session.close()
+        if studio is not None:
+            studio.close()
         else:
             for _, src in opened:
                 src.close()
