@@ -1,20 +1,29 @@
-"""The fit stage's report: one self-contained HTML page (inline SVG charts, tables) and a PNG summary.
+"""The fit stage's report: one self-contained HTML page (charts and tables) and an optional PNG summary.
 
-No plotting library is needed: the charts are drawn as SVG paths by hand, and the PNG with Pillow.
+matplotlib draws the charts: it is the field's plotting library, and it leaves less drawing code of our own.
 
-* ``series`` maps a chart title to ``{line label: per-frame values (T,)}``; frame ``i`` is drawn at
-  time ``i / fps`` seconds, ``NaN`` means "no value" and breaks the line there. Every chart shares one
-  time axis (0 to the longest series' last frame) so charts line up vertically on the page.
+* ``series`` maps a chart title to ``{line label: per-frame values (T,)}`` (any units, named in the
+  title; each line may have its own T). Frame ``i`` is drawn at time ``i / fps`` seconds; ``NaN``
+  means "no value" and breaks the line there (a value with ``NaN`` on both sides is drawn as a dot).
+  Every chart shares one time axis, 0 s to the longest series' last frame, with the same width and
+  margins, so charts line up vertically on the page; takes of 120 s or more label it ``m:ss``.
 * A chart whose title's last word is ``valid`` (e.g. ``"Tracker valid"``) is drawn as dropout strips:
-  one row per label, values >= 0.5 are valid, anything else (0, ``NaN``) is a dropout drawn in red.
-* Long series are decimated for drawing: each pixel column keeps the frames holding its smallest and
-  largest value, so a one-frame spike in an 18,000-frame take is still drawn; a segment joins two
-  kept frames only when no ``NaN`` lies between them in the original series.
+  one row per label, values >= 0.5 are valid (light green), anything else (0, ``NaN``) is a dropout
+  drawn in red, at least one pixel column wide so a one-frame dropout stays visible.
+* Long series are decimated before plotting (:func:`decimate_minmax`): each pixel column keeps the
+  frames holding its smallest and largest value, so a one-frame spike in an 18,000-frame take is still
+  drawn, and a chart's size does not grow with T; lines still break wherever the original has a ``NaN``.
+* The HTML page holds each chart as inline SVG (vector, text drawn as glyph outlines, no scripts, no
+  external URLs), a statistics table under each chart, the ``summary`` numbers and the ``sync`` report's
+  tables; the PNG stacks the same charts in one ``png_size`` (width, height) pixel image.
+* Figures are built on their own Agg canvas (:class:`matplotlib.figure.Figure`, never pyplot, never
+  changing rcParams), so reports can be written from worker threads and no window ever opens.
 """
 
 from __future__ import annotations
 
 import html
+import io
 import math
 import os
 import re
@@ -23,6 +32,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, MultipleLocator
 
 __all__ = ["write_fit_report", "decimate_minmax", "is_validity_chart"]
 
@@ -42,21 +54,23 @@ PALETTE = (
 DROPOUT_COLOUR = "#d62728"
 VALID_COLOUR = "#cfe8cf"
 
-# SVG layout, pixels. The left margin is shared by line charts and strips so time axes align.
-_SVG_W = 960
-_LEFT = 150
-_RIGHT = 20
-_PLOT_W = _SVG_W - _LEFT - _RIGHT
-_TOP = 12
-_LINE_PLOT_H = 220
-_AXIS_H = 38
-_STRIP_ROW = 14
-_STRIP_GAP = 5
-_LEGEND_ROW = 18
-_CHAR_W = 6.6  # rough width of one 11 px sans-serif character, for legend layout and truncation
+# HTML chart layout, inches at _DPI pixels per inch. Every chart has the same width and side margins,
+# so their time axes line up.
+_DPI = 100
+_FIG_W = 9.6
+_LEFT = 1.5
+_RIGHT = 0.2
+_PLOT_PX = round((_FIG_W - _LEFT - _RIGHT) * _DPI)  # pixel columns of a plot: the decimation width
+_TOP = 0.12
+_LINE_H = 2.2
+_AXIS_H = 0.5  # tick labels and the time label under a plot
+_STRIP_ROW = 0.2
+_LEGEND_ROW = 0.2
+_CHAR_W = 0.075  # rough width of one 9 pt character, inches, to choose the legend's columns
 
 _VALID_TITLE = re.compile(r"(^|[^a-z0-9])valid\s*$", re.IGNORECASE)
 _TIME_STEPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200)
+_NO_SVG_METADATA = {"Creator": None, "Date": None, "Format": None, "Type": None}  # no dates, no URLs
 
 
 def is_validity_chart(title: str) -> bool:
@@ -108,7 +122,7 @@ def _check_series(series: Any) -> dict[str, dict[str, np.ndarray]]:
 
 
 # --------------------------------------------------------------------------------------------------
-# decimation and axes
+# decimation
 
 
 def decimate_minmax(values: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.ndarray]:
@@ -148,54 +162,6 @@ def decimate_minmax(values: np.ndarray, n_buckets: int) -> tuple[np.ndarray, np.
     gap = nan_before[idx[1:]] - nan_before[idx[:-1] + 1] > 0
     starts = np.concatenate([[0], np.flatnonzero(gap) + 1]).astype(np.int64)
     return idx, starts
-
-
-def _nice_step(span: float, target: int) -> float:
-    raw = span / max(target, 1)
-    mag = 10.0 ** math.floor(math.log10(raw))
-    for m in (1.0, 2.0, 2.5, 5.0, 10.0):
-        if m * mag >= raw * 0.8:  # up to ~1.25 x target ticks, for rounder steps
-            return m * mag
-    return 10.0 * mag
-
-
-def _value_axis(lo: float, hi: float, target: int = 5) -> tuple[float, float, list[float], int]:
-    """Axis ``(lo, hi, ticks, decimals)`` covering [lo, hi] with round tick values."""
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        lo, hi = 0.0, 1.0
-    if hi - lo <= 1e-12 * max(1.0, abs(hi), abs(lo)):
-        pad = abs(hi) * 0.1 if hi != 0 else 1.0
-        lo, hi = lo - pad, hi + pad
-    step = _nice_step(hi - lo, target)
-    k0 = math.floor(lo / step + 1e-9)
-    k1 = math.ceil(hi / step - 1e-9)
-    ticks = [k * step for k in range(k0, k1 + 1)]
-    decimals = max(0, -math.floor(math.log10(step) + 1e-9))
-    if step * 10**decimals % 1 > 1e-6:  # steps like 2.5 need one more decimal
-        decimals += 1
-    return k0 * step, k1 * step, ticks, decimals
-
-
-def _time_axis(t_max: float, target: int = 8) -> tuple[list[float], bool]:
-    """Tick times (s) within [0, t_max] and whether to label them as m:ss."""
-    raw = t_max / target
-    step = next((s for s in _TIME_STEPS if s >= raw), _TIME_STEPS[-1])
-    n = int(math.floor(t_max / step + 1e-9))
-    return [k * step for k in range(n + 1)], t_max >= 120
-
-
-def _fmt_tick(v: float, decimals: int) -> str:
-    if abs(v) >= 1e6:
-        return f"{v:.3g}"
-    s = f"{v:.{decimals}f}"
-    return "0" if s.lstrip("-").strip("0.") == "" else s
-
-
-def _fmt_time(t: float, minutes: bool) -> str:
-    if minutes:
-        m, s = divmod(int(round(t)), 60)
-        return f"{m}:{s:02d}"
-    return f"{t:g}"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -281,93 +247,65 @@ def _grid_table(head: list[str], rows: list[list[str]]) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
-# SVG charts
+# charts (matplotlib)
 
 
 def _truncate(s: str, n: int) -> str:
     return s if len(s) <= n else s[: max(n - 1, 1)] + "…"
 
 
-def _time_axis_svg(y0: float, t_span: float) -> list[str]:
-    ticks, minutes = _time_axis(t_span)
-    out = [f'<line x1="{_LEFT}" y1="{y0:.1f}" x2="{_LEFT + _PLOT_W}" y2="{y0:.1f}" stroke="#444"/>']
-    for t in ticks:
-        x = _LEFT + t / t_span * _PLOT_W
-        out.append(f'<line x1="{x:.1f}" y1="{y0:.1f}" x2="{x:.1f}" y2="{y0 + 4:.1f}" stroke="#444"/>')
-        out.append(f'<text x="{x:.1f}" y="{y0 + 15:.1f}" text-anchor="middle">{_fmt_time(t, minutes)}</text>')
-    label = "time (min:s)" if minutes else "time (s)"
-    out.append(f'<text x="{_LEFT + _PLOT_W / 2:.1f}" y="{y0 + 31:.1f}" text-anchor="middle">{label}</text>')
-    return out
+def _plain(s: str) -> str:
+    """``s`` for a matplotlib text, drawn literally (a ``$`` would otherwise start math text)."""
+    return s.replace("$", r"\$")
 
 
-def _svg_open(title: str, height: float) -> str:
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{_SVG_W}" height="{height:.0f}" '
-        f'viewBox="0 0 {_SVG_W} {height:.0f}" role="img" aria-label="{_esc(title)}" '
-        'font-family="sans-serif" font-size="11">'
-    )
+def _figure(width_in: float, height_in: float) -> Figure:
+    fig = Figure(figsize=(width_in, height_in), dpi=_DPI)
+    FigureCanvasAgg(fig)  # this figure's own Agg canvas: no pyplot, no window
+    return fig
 
 
-def _line_chart_svg(title: str, lines: dict[str, np.ndarray], fps: float, t_span: float) -> str:
-    finite = [a[np.isfinite(a)] for a in lines.values()]
-    finite = [f for f in finite if f.size]
-    lo = min((float(f.min()) for f in finite), default=math.nan)
-    hi = max((float(f.max()) for f in finite), default=math.nan)
-    y_lo, y_hi, y_ticks, dec = _value_axis(lo, hi)
-    top, h = _TOP, _LINE_PLOT_H
+def _time_axis(ax, t_span: float, target: int = 8) -> None:
+    """Time axis of ``ax``: 0 to ``t_span`` seconds, about ``target`` round ticks, ``m:ss`` from 120 s."""
+    step = next((s for s in _TIME_STEPS if s >= t_span / target), _TIME_STEPS[-1])
+    minutes = t_span >= 120
+    ax.set_xlim(0.0, t_span)
+    ax.xaxis.set_major_locator(MultipleLocator(step))
+    if minutes:
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda t, _: "{}:{:02d}".format(*divmod(round(t), 60))))
+    else:
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda t, _: f"{t:g}"))
+    ax.set_xlabel("time (min:s)" if minutes else "time (s)", fontsize=9)
 
-    def ypx(v):
-        return top + (y_hi - v) / (y_hi - y_lo) * h
 
-    # legend layout below the axis
-    legend, x, row = [], 0.0, 0
-    for i, label in enumerate(lines):
-        shown = _truncate(label, 40)
-        w = 34 + _CHAR_W * len(shown)
-        if x > 0 and x + w > _PLOT_W:
-            x, row = 0.0, row + 1
-        legend.append((i, label, shown, _LEFT + x, top + h + _AXIS_H + 6 + row * _LEGEND_ROW))
-        x += w
-    height = top + h + _AXIS_H + 8 + (row + 1) * _LEGEND_ROW if lines else top + h + _AXIS_H + 8
+def _no_data(ax) -> None:
+    ax.text(0.5, 0.5, "no data", transform=ax.transAxes, ha="center", va="center", color="#888888")
 
-    out = [_svg_open(title, height)]
-    out.append(f'<rect class="frame" x="{_LEFT}" y="{top}" width="{_PLOT_W}" height="{h}" fill="#fff" stroke="#bbb"/>')
-    for v in y_ticks:
-        y = ypx(v)
-        out.append(f'<line x1="{_LEFT}" y1="{y:.1f}" x2="{_LEFT + _PLOT_W}" y2="{y:.1f}" stroke="#e4e4e4"/>')
-        out.append(f'<text x="{_LEFT - 6}" y="{y + 4:.1f}" text-anchor="end">{_fmt_tick(v, dec)}</text>')
-    out.append(f'<line x1="{_LEFT}" y1="{top}" x2="{_LEFT}" y2="{top + h}" stroke="#444"/>')
-    out.extend(_time_axis_svg(top + h, t_span))
-    if not lines:
-        out.append(
-            f'<text x="{_LEFT + _PLOT_W / 2:.1f}" y="{top + h / 2:.1f}" text-anchor="middle" fill="#888">no data</text>'
-        )
-    for i, (label, arr) in enumerate(lines.items()):
+
+def _draw_lines(ax, lines: dict[str, np.ndarray], fps: float, n_px: int, gid: str, lw: float) -> list:
+    """One line per label, decimated to ``n_px`` columns; returns the legend handles."""
+    handles = []
+    for i, arr in enumerate(lines.values()):
         colour = PALETTE[i % len(PALETTE)]
-        idx, starts = decimate_minmax(arr, _PLOT_W)
-        if idx.size == 0:
-            continue
-        xs = _LEFT + idx / fps / t_span * _PLOT_W
-        ys = ypx(arr[idx])
-        pts = [f"{a:.1f},{b:.1f}" for a, b in zip(xs, ys)]
-        bounds = list(starts) + [idx.size]
-        pieces = []
-        for s, e in zip(bounds[:-1], bounds[1:]):
-            # a lone point becomes a zero-length segment: round caps draw it as a dot
-            pieces.append(f"M{pts[s]}h0" if e - s == 1 else f"M{pts[s]}L" + " ".join(pts[s + 1 : e]))
-        out.append(
-            f'<path class="series" data-label="{_esc(label)}" d="{"".join(pieces)}" fill="none" '
-            f'stroke="{colour}" stroke-width="1.3" stroke-linejoin="round" stroke-linecap="round"/>'
+        idx, starts = decimate_minmax(arr, n_px)
+        x, y = idx / fps, arr[idx]
+        (line,) = ax.plot(
+            np.insert(x, starts[1:], np.nan),  # a NaN before each new piece breaks the line there
+            np.insert(y, starts[1:], np.nan),
+            color=colour,
+            lw=lw,
+            solid_joinstyle="round",
+            gid=f"{gid}-line-{i + 1}",
         )
-    for i, label, shown, lx, ly in legend:
-        colour = PALETTE[i % len(PALETTE)]
-        tip = f"<title>{_esc(label)}</title>" if shown != label else ""
-        out.append(
-            f'<line x1="{lx:.1f}" y1="{ly:.1f}" x2="{lx + 22:.1f}" y2="{ly:.1f}" stroke="{colour}" stroke-width="3"/>'
-        )
-        out.append(f'<text x="{lx + 27:.1f}" y="{ly + 4:.1f}">{tip}{_esc(shown)}</text>')
-    out.append("</svg>")
-    return "".join(out)
+        handles.append(line)
+        lone = starts[np.diff(np.append(starts, idx.size)) == 1]  # one-frame pieces: no segment to draw
+        if lone.size:
+            ax.plot(x[lone], y[lone], ls="none", marker="o", ms=2.2 * lw, color=colour, gid=f"{gid}-dots-{i + 1}")
+    if not any(np.isfinite(a).any() for a in lines.values()):
+        _no_data(ax)
+    ax.grid(axis="y", color="#e4e4e4", lw=0.8)
+    ax.set_axisbelow(True)
+    return handles
 
 
 def _dropout_runs(valid: np.ndarray) -> list[tuple[int, int]]:
@@ -390,33 +328,75 @@ def _pixel_runs(runs: list[tuple[int, int]], px_per_frame: float, width: int) ->
     return merged
 
 
-def _strip_chart_svg(title: str, lines: dict[str, np.ndarray], fps: float, t_span: float) -> str:
-    n = max(len(lines), 1)
-    top = _TOP
-    rows_h = n * (_STRIP_ROW + _STRIP_GAP)
-    height = top + rows_h + _AXIS_H + 4
-    out = [_svg_open(title, height)]
-    px_per_s = _PLOT_W / t_span
-    if not lines:
-        out.append(
-            f'<text x="{_LEFT + _PLOT_W / 2:.1f}" y="{top + 12}" text-anchor="middle" fill="#888">no data</text>'
-        )
-    for r, (label, arr) in enumerate(lines.items()):
-        y = top + r * (_STRIP_ROW + _STRIP_GAP)
+def _draw_strips(
+    ax, lines: dict[str, np.ndarray], fps: float, t_span: float, n_px: int, gid: str, label_chars: int, fontsize: float
+) -> None:
+    """One strip per label, top to bottom: light green where valid, red dropouts >= one pixel column."""
+    s_per_px = t_span / n_px
+    for r, arr in enumerate(lines.values()):
         valid = np.nan_to_num(arr, nan=0.0) >= 0.5
-        w = min(arr.size / fps * px_per_s, _PLOT_W)
-        shown = _truncate(label, 22)
-        tip = f"<title>{_esc(label)}</title>" if shown != label else ""
-        out.append(f'<text x="{_LEFT - 6}" y="{y + _STRIP_ROW - 3}" text-anchor="end">{tip}{_esc(shown)}</text>')
-        out.append(f'<rect x="{_LEFT}" y="{y}" width="{w:.1f}" height="{_STRIP_ROW}" fill="{VALID_COLOUR}"/>')
-        for c0, c1 in _pixel_runs(_dropout_runs(valid), px_per_s / fps, _PLOT_W):
-            out.append(
-                f'<rect class="dropout" x="{_LEFT + c0}" y="{y}" width="{c1 - c0}" '
-                f'height="{_STRIP_ROW}" fill="{DROPOUT_COLOUR}"/>'
+        ax.broken_barh([(0.0, arr.size / fps)], (r - 0.4, 0.8), facecolors=VALID_COLOUR, gid=f"{gid}-valid-{r + 1}")
+        cols = _pixel_runs(_dropout_runs(valid), n_px / t_span / fps, n_px)
+        if cols:
+            ax.broken_barh(
+                [(c0 * s_per_px, (c1 - c0) * s_per_px) for c0, c1 in cols],
+                (r - 0.4, 0.8),
+                facecolors=DROPOUT_COLOUR,
+                gid=f"{gid}-dropouts-{r + 1}",
             )
-    out.extend(_time_axis_svg(top + rows_h, t_span))
-    out.append("</svg>")
-    return "".join(out)
+    ax.set_ylim(max(len(lines), 1) - 0.5, -0.5)
+    ax.set_yticks(range(len(lines)), [_plain(_truncate(label, label_chars)) for label in lines], fontsize=fontsize)
+    ax.tick_params(axis="y", length=0)
+    for side in ("left", "right", "top"):
+        ax.spines[side].set_visible(False)
+    if not lines:
+        _no_data(ax)
+
+
+def _chart_svg(k: int, title: str, lines: dict[str, np.ndarray], fps: float, t_span: float) -> str:
+    """Chart ``k`` of the page as an ``<svg>`` element to inline in HTML (ids prefixed ``chart-{k}``)."""
+    strips = is_validity_chart(title)
+    labels = [_plain(_truncate(label, 40)) for label in lines]
+    plot_w = _FIG_W - _LEFT - _RIGHT
+    if strips:
+        plot_h, legend_h, ncols = max(len(lines), 1) * _STRIP_ROW, 0.0, 1
+    else:
+        widest = max((len(s) for s in labels), default=0)
+        ncols = max(1, min(len(labels), int(plot_w // (0.5 + _CHAR_W * widest))))
+        plot_h, legend_h = _LINE_H, math.ceil(len(labels) / ncols) * _LEGEND_ROW + 0.05 if labels else 0.0
+    height = _TOP + plot_h + _AXIS_H + legend_h
+    fig = _figure(_FIG_W, height)
+    ax = fig.add_axes((_LEFT / _FIG_W, 1 - (_TOP + plot_h) / height, plot_w / _FIG_W, plot_h / height))
+    if strips:
+        _draw_strips(ax, lines, fps, t_span, _PLOT_PX, f"chart-{k}", label_chars=22, fontsize=9)
+    else:
+        handles = _draw_lines(ax, lines, fps, _PLOT_PX, f"chart-{k}", lw=1.0)
+        if handles:
+            legend = fig.legend(
+                handles,
+                labels,
+                loc="upper left",
+                bbox_to_anchor=(_LEFT / _FIG_W, 1 - (_TOP + plot_h + _AXIS_H) / height),
+                ncols=ncols,
+                frameon=False,
+                fontsize=9,
+                borderaxespad=0,
+                borderpad=0,
+                columnspacing=1.5,
+            )
+            for h in legend.legend_handles:
+                h.set_linewidth(3)
+    ax.tick_params(labelsize=9)
+    _time_axis(ax, t_span)
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg", metadata=_NO_SVG_METADATA)
+    svg = buf.getvalue()
+    svg = svg[svg.index("<svg") :]  # drop the XML declaration and DOCTYPE: the SVG is inlined in HTML
+    return svg.replace("<svg ", f'<svg role="img" aria-label="{_esc(title)}" ', 1)
+
+
+# --------------------------------------------------------------------------------------------------
+# chart statistics
 
 
 def _swatch(i: int) -> str:
@@ -550,87 +530,67 @@ def _sync_html(sync: Mapping) -> str:
 def _png(
     path: Path, take: str, fps: float, charts: dict[str, dict[str, np.ndarray]], t_span: float, size: tuple[int, int]
 ) -> None:
-    from PIL import Image, ImageDraw, ImageFont
-
     w, h = size
-    img = Image.new("RGB", (w, h), "white")
-    draw = ImageDraw.Draw(img)
-    font = ImageFont.load_default()
-
-    def text(xy, s, fill="black", anchor="la"):
-        try:
-            draw.text(xy, s, fill=fill, font=font, anchor=anchor)
-        except (UnicodeEncodeError, ValueError):  # the bitmap fallback font is Latin-1 only, no anchors
-            draw.text(xy, s.encode("latin-1", "replace").decode("latin-1"), fill=fill, font=font)
-
+    fig = _figure(w / _DPI, h / _DPI)
     n_frames = max((a.size for lines in charts.values() for a in lines.values()), default=0)
-    text((10, 8), f"Fit report: {take}   {n_frames} frames at {fps:g} fps ({n_frames / fps:.1f} s)")
-    header, left, right, gap = 28, 110, 14, 34
-    plot_w = w - left - right
+    fig.text(
+        10 / w,
+        1 - 6 / h,
+        _plain(f"Fit report: {take}   {n_frames} frames at {fps:g} fps ({n_frames / fps:.1f} s)"),
+        va="top",
+        fontsize=10,
+        weight="bold",
+    )
     if not charts:
-        text((10, 40), "no series", fill="#888")
-        img.save(path, format="PNG")
+        fig.text(0.5, 0.5, "no series", ha="center", va="center", color="#888888")
+        fig.savefig(path, format="png", dpi=_DPI)
         return
-    slot = (h - header) / len(charts)
-    ticks, minutes = _time_axis(t_span, target=max(2, plot_w // 110))
-    for c, (title, lines) in enumerate(charts.items()):
-        y0 = header + c * slot
-        ph = max(slot - gap, 4.0)
-        top, bot = y0 + 16, y0 + 16 + ph
-        text((left, y0 + 2), title)
-        lx = left + draw.textlength(title, font=font) + 16
-        strips = is_validity_chart(title)
-        if not strips:
-            for i, label in enumerate(lines):
-                colour = PALETTE[i % len(PALETTE)]
-                draw.line([(lx, y0 + 9), (lx + 14, y0 + 9)], fill=colour, width=3)
-                text((lx + 18, y0 + 2), label, fill=colour)
-                lx += 30 + draw.textlength(label, font=font)
-        draw.rectangle([left, top, left + plot_w, bot], outline="#bbbbbb")
-        for t in ticks:
-            x = left + t / t_span * plot_w
-            draw.line([(x, bot), (x, bot + 3)], fill="#444444")
-            text((x, bot + 4), _fmt_time(t, minutes), fill="#444444", anchor="ma")
-        if not lines:
-            text((left + plot_w / 2, (top + bot) / 2), "no data", fill="#888888", anchor="mm")
+    left, right, top, bottom = 110, 14, 44, 40  # pixels
+    n = len(charts)
+    avail = h - top - bottom
+    gap = min(30.0, 0.4 * avail / n)  # room for each chart's title and legend
+    ax_h = (avail - (n - 1) * gap) / n
+    axes = fig.subplots(
+        n,
+        1,
+        sharex=True,
+        squeeze=False,
+        gridspec_kw={
+            "left": left / w,
+            "right": 1 - right / w,
+            "top": 1 - top / h,
+            "bottom": bottom / h,
+            "hspace": gap / ax_h,
+        },
+    )[:, 0]
+    n_px = w - left - right
+    renderer = fig.canvas.get_renderer()  # to measure titles and legends
+    for k, (ax, (title, lines)) in enumerate(zip(axes, charts.items()), 1):
+        heading = ax.set_title(_plain(title), loc="left", fontsize=9, pad=3)
+        ax.tick_params(labelsize=8)
+        if is_validity_chart(title):
+            _draw_strips(ax, lines, fps, t_span, n_px, f"chart-{k}", label_chars=16, fontsize=8)
+            if lines and ax_h / len(lines) < 8:
+                ax.set_yticks([])
             continue
-        if strips:
-            rh = ph / len(lines)
-            for r, (label, arr) in enumerate(lines.items()):
-                ry0, ry1 = top + r * rh + 1, top + (r + 1) * rh - 1
-                valid = np.nan_to_num(arr, nan=0.0) >= 0.5
-                xw = min(arr.size / fps / t_span * plot_w, plot_w)
-                draw.rectangle([left, ry0, left + xw, max(ry1, ry0)], fill=VALID_COLOUR)
-                for c0, c1 in _pixel_runs(_dropout_runs(valid), plot_w / t_span / fps, plot_w):
-                    draw.rectangle([left + c0, ry0, left + c1 - 1, max(ry1, ry0)], fill=DROPOUT_COLOUR)
-                if rh >= 8:
-                    text((left - 6, (ry0 + ry1) / 2), _truncate(label, 16), anchor="rm")
+        handles = _draw_lines(ax, lines, fps, n_px, f"chart-{k}", lw=0.8)
+        if not handles:
             continue
-        finite = [a[np.isfinite(a)] for a in lines.values()]
-        finite = [f for f in finite if f.size]
-        y_lo, y_hi, y_ticks, dec = _value_axis(
-            min((float(f.min()) for f in finite), default=math.nan),
-            max((float(f.max()) for f in finite), default=math.nan),
-            target=max(1, int(ph // 30)),
+        style = {"fontsize": 8, "borderpad": 0.2, "handlelength": 1.2, "handletextpad": 0.4, "columnspacing": 1.0}
+        labels = [_plain(_truncate(label, 24)) for label in lines]
+        legend = ax.legend(
+            handles, labels, loc="lower right", bbox_to_anchor=(1, 1), ncols=len(handles), frameon=False, **style
         )
-        for v in y_ticks:
-            y = bot - (v - y_lo) / (y_hi - y_lo) * ph
-            draw.line([(left, y), (left + plot_w, y)], fill="#e8e8e8")
-            text((left - 6, y), _fmt_tick(v, dec), fill="#444444", anchor="rm")
-        for i, arr in enumerate(lines.values()):
-            colour = PALETTE[i % len(PALETTE)]
-            idx, starts = decimate_minmax(arr, plot_w)
-            if idx.size == 0:
-                continue
-            xs = left + idx / fps / t_span * plot_w
-            ys = bot - (arr[idx] - y_lo) / (y_hi - y_lo) * ph
-            bounds = list(starts) + [idx.size]
-            for s, e in zip(bounds[:-1], bounds[1:]):
-                if e - s == 1:
-                    draw.point((float(xs[s]), float(ys[s])), fill=colour)
-                else:
-                    draw.line(list(zip(xs[s:e].tolist(), ys[s:e].tolist())), fill=colour, width=1)
-    img.save(path, format="PNG")
+        beside_title = n_px - heading.get_window_extent(renderer).width - 20  # pixels right of the title
+        width = legend.get_window_extent(renderer).width
+        if width > beside_title:  # no room on the title's line: wrap it into the plot's upper right corner
+            legend.remove()
+            ncols = max(1, int(len(handles) * min(1.0, 0.95 * n_px / width)))
+            legend = ax.legend(handles, labels, loc="upper right", ncols=ncols, framealpha=0.85, **style)
+        for h in legend.legend_handles:
+            h.set_linewidth(2.5)
+    _time_axis(axes[-1], t_span, target=max(2, n_px // 110))
+    fig.savefig(path, format="png", dpi=_DPI)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -731,9 +691,8 @@ def write_fit_report(
     if not charts:
         body.append('<p class="muted">No series.</p>')
     for k, (title, lines) in enumerate(charts.items()):
-        strips = is_validity_chart(title)
-        svg = (_strip_chart_svg if strips else _line_chart_svg)(title, lines, fps, t_span)
-        stats = (_strip_stats(lines, fps) if strips else _line_stats(lines)) if lines else ""
+        svg = _chart_svg(k + 1, title, lines, fps, t_span)
+        stats = (_strip_stats(lines, fps) if is_validity_chart(title) else _line_stats(lines)) if lines else ""
         body.append(f'<figure id="chart-{k + 1}"><figcaption>{_esc(title)}</figcaption>{svg}{stats}</figure>')
     body.append('<h2 id="sync">Sync</h2>' + _sync_html(sync))
 
