@@ -187,7 +187,8 @@ class BodyTrack:
 
     @classmethod
     def from_model(cls, model, pose, transl, shape, fps: float, actor: str = "", meta=None) -> "BodyTrack":
-        """A track whose names and version come from ``model`` (a :class:`~dualhuman_builder.body.BodyModel`)."""
+        """A track whose names and version come from ``model`` (a
+        :class:`~dualhuman_builder.body.BodyModel`)."""
         return cls(pose=pose, transl=transl, shape=shape, fps=fps, bone_names=model.bone_names,
                    shape_names=model.shape_names, model=model.name, model_version=model.version,
                    actor=actor, meta=dict(meta or {}))  # fmt: skip

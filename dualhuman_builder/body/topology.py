@@ -1,7 +1,7 @@
 """Facts about anny's mesh that decide how inside/outside is computed downstream.
 
 Measured on anny 0.6.2's default topology (13,718 vertices, 27,420 triangles), and checked by
-``tests/test_body.py``: the mesh is **watertight** — every edge is shared by exactly two triangles,
+``tests/body/test_body.py``: the mesh is **watertight** — every edge is shared by exactly two triangles,
 winding is consistent and outward (positive volume) — and consists of **four closed components**:
 the body (13,348 vertices), two eyeballs (72 each) and the mouth interior (226),
 the last three sitting inside the head. So:

@@ -1,13 +1,13 @@
-"""Decoding beside the recorder, in a process of its own.
+"""Decoding beside the recorder, in a process of its own (docs/decisions/0006-decoding-process.md).
 
-Decoding packets and encoding samples is most of a recorder's CPU work (tens of microseconds per
-packet in Python), and with it in the recorder's process the reader threads and the writer share
-one interpreter lock: at a few times real time the readers stop draining their sockets and the
-kernel drops datagrams. So by default the recorder keeps for itself only what cannot wait —
-reading every transport and writing every raw packet to the take — and a :class:`DecodeProcess`
-runs the sources' decoders (the same classes, fed the same packets in the same order, so the
-samples are the same) and the :class:`~dualhuman_builder.capture.log.writer.SampleEncoder`, and
-sends back ready-to-write messages, the decoders' counters, events and live status.
+Decoding packets and encoding samples is most of a recorder's CPU work, and with it in the
+recorder's process the reader threads and the writer share one interpreter lock: at a few times
+real time the readers stop draining their sockets and the kernel drops datagrams. So by default
+the recorder keeps for itself only what cannot wait — reading every transport and writing every
+raw packet to the take — and a :class:`DecodeProcess` runs the sources' decoders (the same
+classes, fed the same packets in the same order, so the samples are the same) and the
+:class:`~dualhuman_builder.capture.log.writer.SampleEncoder`, and sends back ready-to-write
+messages, the decoders' counters, events and live status.
 
 If decoding falls behind (a take at many times real time), nothing is lost: the raw packets are
 already on disk and the decoded samples follow as they are ready; the take is finished once the

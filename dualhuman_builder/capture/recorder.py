@@ -87,7 +87,8 @@ class LiveStatus:
 @dataclass
 class TakeResult:
     """How a take ended: ``reason`` (``duration``, ``stopped``, ``finished``, ``source-lost``,
-    ``write-failed``, ``decode-failed``), ``error`` (the message when it failed), counts per topic and source."""
+    ``write-failed``, ``decode-failed``), ``error`` (the message when it failed), counts per topic
+    and source."""
 
     path: Path
     take: str

@@ -17,8 +17,8 @@ import numpy as np
 class SuitFrame:
     """One MVN character's segment poses at one sample (MVN message type 02).
 
-    ``character``: MVN character (avatar) ID; ``sample_counter``: MVN's sample counter (u32 on the wire, unwrapped by the decoder; may
-    skip); ``time_code_ms``: ms since the start of the recording clock (MVN time code);
+    ``character``: MVN character (avatar) ID; ``sample_counter``: MVN's sample counter (u32 on the
+    wire, unwrapped by the decoder; may skip); ``time_code_ms``: ms since the start of the recording clock (MVN time code);
     ``segment_names (S,)``; ``orientations (S, 4)`` world-frame segment orientations;
     ``positions (S, 3)`` segment origins, metres.
     """

@@ -11,7 +11,7 @@ comma-separated list of the trackers to keep (default: all).
 our world frame (Y-up, metres, quaternion x, y, z, w) with the bridge's device time and the
 host receive time (int ns). Tracking loss reaches the pipeline as ``valid=False`` whichever way
 the tracker reports it: the pose-valid flag clear, or OpenVR's jump of a "valid" pose to exactly
-(0, 0, 0) (capture-protocols.md; triad_openvr #16).
+(0, 0, 0) (both seen from OpenVR: ``TriadSemi/triad_openvr`` issue 16).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class _Tracker:
 
 
 class ViveUdpDecoder(Decoder):
-    """Tracker datagrams -> :class:`TrackerSample` s, one per new pose.
+    """Tracker datagrams -> :class:`~dualhuman_builder.capture.samples.TrackerSample` s, one per new pose.
 
     ``stale_s``: seconds without a sample after which a tracker is not live; ``serials``: keep
     only these trackers (None: all).

@@ -16,8 +16,9 @@ def contacts_for_scene(scene, threshold_m: float | None = None, band_m: float | 
                        topology: ContactTopology | None = None) -> tuple[ContactResult, dict[str, float]]:
     """Contacts of a ground-truth :class:`~dualhuman_builder.sim.scenes.Scene` (or a path to a
     saved one) and their precision, recall and F1 against the scene's own per-vertex contacts
-    (:meth:`Scene.contact_labels` at the same threshold). Defaults: the scene's
-    ``CONTACT_THRESHOLD`` and ``DISTANCE_BAND``."""
+    (:meth:`~dualhuman_builder.sim.scenes.Scene.contact_labels` at the same threshold). Defaults:
+    :data:`~dualhuman_builder.sim.scenes.CONTACT_THRESHOLD` and
+    :data:`~dualhuman_builder.sim.scenes.DISTANCE_BAND`."""
     from dualhuman_builder.sim.scenes import CONTACT_THRESHOLD, DISTANCE_BAND, Scene
 
     if isinstance(scene, (str, Path)):

@@ -31,8 +31,9 @@ def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: 
                           speed: float = 1.0, duration: float | None = None, model=None) -> tuple[Path, object]:  # fmt: skip
     """Generate a ``scene_type`` scene (seed, fps), record its studio through loopback transports at
     ``speed`` times real time. Returns ``(take_path, scene)``. Keep ``speed`` at 1 when the sync is
-    scored: a 2-core machine records losslessly up to ~2x (``benchmarks/bench_capture.py``), and a
-    hug recorded at 4x synced 121 ms off (0.25 ms at 1x)."""
+    scored: above the highest lossless multiple of the machine (``benchmarks/bench_capture.py``)
+    the host receive times lag the devices' own timing, and the score would measure that lag, not
+    the sync."""
     from dualhuman_builder.capture.recording import capture_take, plan_capture
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 

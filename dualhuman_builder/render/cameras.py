@@ -10,7 +10,7 @@ of view (so ``fx`` must equal ``fy``) and a principal point offset given as a fr
 size. :meth:`Camera.mitsuba_sensor` and :meth:`Camera.from_mitsuba` convert both ways.
 
 A rig is a list of cameras: :func:`ring_cameras` puts ``n`` of them on a circle around the pair
-(the seed paper samples views on a circle), optionally jittered per sequence with a seed;
+(views on a circle, as in the Dual-Human dataset), optionally jittered per sequence with a seed;
 :func:`load_cameras` reads them from a JSON rig file, :func:`save_cameras` writes one.
 """
 

@@ -3,8 +3,9 @@
 :class:`SequenceRenderer` builds the scene **once** from a render template
 (:mod:`.template`: floor, lights, integrator, per-actor materials) and the cameras
 (:mod:`.cameras`, one Mitsuba sensor per camera), then per frame only writes the two actors'
-vertex positions and normals through ``mi.traverse`` and ``params.update()`` (no reload: reloading
-is ~28x slower on a GPU and leaks in long runs). Each actor has its own BSDF, and the scene is
+vertex positions and normals through ``mi.traverse`` and ``params.update()`` (no reload per frame:
+a reload rebuilds the whole scene and leaks memory over long runs;
+docs/decisions/0023-render-own-rays.md). Each actor has its own BSDF, and the scene is
 loaded with ``optimize=False``, so Mitsuba keeps the bodies separate shapes.
 
 Variant
@@ -78,7 +79,8 @@ def choose_variant(requested: str | None = None, log: Callable[[str], None] | No
 
 def body_model_uvs(model=None) -> tuple[np.ndarray, np.ndarray] | None:
     """``(uv (N, 2) float32, face_uv (F, 3) int64)`` of the body model's UV map (OBJ convention,
-    v up), or None when the model has none. ``model`` defaults to :func:`get_body_model`."""
+    v up), or None when the model has none. ``model`` defaults to
+    :func:`~dualhuman_builder.body.model.get_body_model`."""
     if model is None:
         from dualhuman_builder.body.model import get_body_model
 
@@ -107,8 +109,9 @@ def _srgb_curve(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-#: Linear value quantised to 1/65535 -> 8-bit sRGB: a table lookup, 3x faster than the power
-#: law; within one 8-bit level of the exact curve (0.1 % of values land on the neighbour).
+#: Linear value quantised to 1/65535 -> 8-bit sRGB: a table lookup, cheaper than the power law
+#: on the encoder threads (docs/decisions/0023-render-own-rays.md); within one 8-bit level of the
+#: exact curve (0.1 % of values land on the neighbour).
 _SRGB_LUT = (_srgb_curve(np.arange(65536) / 65535.0) * 255.0 + 0.5).astype(np.uint8)
 
 

@@ -93,7 +93,7 @@ def _contact_row(sequence, labels: np.ndarray, faces: np.ndarray, frames: list[i
 
     from dualhuman_builder.render.preview import render_preview
 
-    # only the shown frames: a whole take's meshes would cost minutes and 165 MB per 1,000 frames
+    # only the shown frames: a whole take's meshes are skinned frame by frame (165 MB per 1,000 frames)
     verts = [a.compute(frames=np.asarray(frames))["vertices"] for a in sequence.actors]
     size = (tile_width, round(tile_width * 0.8))
     row = Image.new("RGB", (tile_width * len(frames), size[1]), (255, 255, 255))

@@ -34,9 +34,10 @@ is written to ``<out>/.progress/<frame:05d>.npz`` (atomically, after the images)
 with the same sequence, cameras, template and spp renders only the frames without a marker
 (different settings start afresh; a finished render removes its markers unless asked to keep
 them). A full disk (``ENOSPC``) stops with a :class:`RenderError` saying how many frames are
-complete; re-running resumes. The workspace stage keeps its partial output in ``WS/scratch/render/<take>/<key>`` (the stage runner empties its own folder on every
-run; ``key`` hashes the parameters and the fit result), hard-links the finished files into the
-stage's artifacts and deletes the scratch folder once the stage is recorded done.
+complete; re-running resumes. The workspace stage keeps its partial output in
+``WS/scratch/render/<take>/<key>`` (the stage runner empties its own folder on every run; ``key``
+hashes the parameters and the fit result), hard-links the finished files into the stage's
+artifacts and deletes the scratch folder once the stage is recorded done.
 """
 
 from __future__ import annotations
@@ -400,7 +401,7 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
     key = hashlib.sha256(json.dumps([params, upstream], sort_keys=True, default=str).encode()).hexdigest()[:16]
     scratch_root = ws.root / "scratch" / "render" / take
     scratch = scratch_root / key
-    if scratch_root.is_dir():  # partial renders of other settings cannot be resumed any more
+    if scratch_root.is_dir():  # partial renders of other settings cannot be resumed: drop them
         for old in scratch_root.iterdir():
             if old.name != key:
                 shutil.rmtree(old, ignore_errors=True)

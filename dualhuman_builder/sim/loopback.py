@@ -4,7 +4,8 @@
 simulated devices (:mod:`dualhuman_builder.sim.studio`) are played onto a UDP port for the two
 suits (characters 0 and 1), another for the twelve trackers, a pseudo-terminal for the Xbus MTi
 (which answers the configuration dialogue) and a python-can ``virtual`` bus for the CAN MTi, and
-the live sources (:mod:`.mvn_udp`, :mod:`.vive_udp`, :mod:`.xbus_serial`, :mod:`.mti_can`) read them
+the live sources (:mod:`~dualhuman_builder.capture.mvn_udp`, :mod:`~dualhuman_builder.capture.vive_udp`,
+:mod:`~dualhuman_builder.capture.xbus_serial`, :mod:`~dualhuman_builder.capture.mti_can`) read them
 exactly as they would read a real studio. The actors are those of ``rigs/sim.toml``.
 """
 

@@ -1,5 +1,5 @@
-"""Measures of a two-person motion's physical plausibility, used to hold generated scenes (and
-later fitted ones) to their contract: interpenetration, foot sliding, anatomical joint limits.
+"""Measures of a two-person motion's physical plausibility, which hold generated scenes to their
+contract: interpenetration, foot sliding, anatomical joint limits.
 
 All distances in metres, angles in degrees.
 """
@@ -152,8 +152,8 @@ def winding_depths(verts_a: np.ndarray, verts_b: np.ndarray) -> tuple[np.ndarray
     Why not the pseudonormal sign of the scenes' banded distances: it is exact only on a closed
     surface that does not cross itself, and a posed body does (an arm pressed into its own
     torso, a shoulder folded at full elevation); there it may call an inside point outside or an
-    outside point inside (on the generated hug of seed 2 the pseudonormal ``CollisionTerm`` read
-    110 mm where the winding number reads 28 mm). The banded query also never sees a vertex
+    outside point inside, and a penetration reads much deeper than it is
+    (docs/decisions/0022-ground-truth-scenes.md). The banded query also never sees a vertex
     deeper than its band.
     """
     term = _winding_term()

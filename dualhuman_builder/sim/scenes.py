@@ -56,8 +56,8 @@ MAX_CORRECTION_PASSES = 14
 #: Band (m) within which signed distances are computed and stored; NaN beyond.
 DISTANCE_BAND = 0.05
 SCENE_VERSION = 1
-#: Bumped whenever the same parameters generate different scenes (cached scene stages recompute).
-#: 2: contact corrections ease in and out; inside/outside by the winding number.
+#: Version of the generator: bumped whenever the same parameters generate different scenes, so
+#: that cached ``scene`` stages recompute (the changes are in CHANGELOG.md).
 GENERATOR_VERSION = 2
 
 
@@ -301,11 +301,11 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     :data:`CONTACT_EASE_S` (:func:`_ease_out`; ``fps`` converts it to frames; the torsos' offset is
     first held for :data:`TORSO_HOLD_S`), never below what
     keeps the gap at :data:`CONTACT_GAP` there (``spec.floor``: the offset that each guard
-    frame's last measurement says would leave exactly that gap). Without the easing a contact's
-    correction switched on and off in one frame: the hug's pelvises closed their 76 mm
-    correction in one frame at each end of the embrace (39 mm each, at 15 fps), and on seed 2
-    the release left an arm 28 mm deep in the partner's shoulder. Returns the re-solved poses,
-    the largest gap error measured before this pass (m) and whose it was."""
+    frame's last measurement says would leave exactly that gap). The easing keeps a correction
+    from switching on or off in one frame, which would make the pelvises jump at each end of an
+    embrace and could leave an arm inside the partner at the release
+    (docs/decisions/0022-ground-truth-scenes.md). Returns the re-solved poses, the largest gap
+    error measured before this pass (m) and whose it was."""
     import roma
     import torch
     from scipy.ndimage import gaussian_filter1d

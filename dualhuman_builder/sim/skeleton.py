@@ -4,7 +4,7 @@ With the pose parameterisation of :mod:`dualhuman_builder.body.model` (world-ali
 rotations ``L``), world-aligned global rotations chain as ``A_c = A_p L_c`` and bone heads as
 ``h_c = h_p + A_p (r_c - r_p)``, where ``r`` are the rest bone heads of the actor's shape and
 ``h_root = transl``. That is anny's own kinematics (``anny.utils.kinematics``, 'local-ref') without
-the mesh, so posing many frames costs microseconds; :func:`Skeleton.check_against_model` proves
+the mesh, so posing many frames needs no skinning; :meth:`Skeleton.check_against_model` checks
 the identity against the full model.
 
 Arrays are float64 numpy: rotations ``(..., J, 3, 3)``, positions ``(..., J, 3)``, world metres.

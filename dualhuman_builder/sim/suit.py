@@ -26,11 +26,11 @@ Error model (:class:`SuitErrorModel`), for segment ``s`` at sample ``k``::
 
 Defaults and their sources:
 
-* 1.0 deg RMS dynamic orientation error: the issue's "~1 deg dynamic"; a lone Xsens sensor's
-  filter is specified at 0.5 deg static roll/pitch, 1.0 deg static heading and 2 deg RMS dynamic
-  ("MTi and MTx User Manual", Xsens MT0100P, sec. 4.2); MVN's body model constrains segments
-  further (Roetenberg, Luinge & Slycke, "Xsens MVN: Full 6DOF Human Motion Tracking Using Miniature
-  Inertial Sensors", Xsens technical report, 2009). Correlation 0.16 s: the ~1 Hz crossover of
+* 1.0 deg RMS dynamic orientation error: a lone Xsens sensor's filter is specified at 0.5 deg
+  static roll/pitch, 1.0 deg static heading and 2 deg RMS dynamic ("MTi and MTx User Manual",
+  Xsens MT0100P, sec. 4.2); MVN's body model constrains segments further (Roetenberg, Luinge &
+  Slycke, "Xsens MVN: Full 6DOF Human Motion Tracking Using Miniature Inertial Sensors", Xsens
+  technical report, 2009). Correlation 0.16 s: the ~1 Hz crossover of
   Xsens' fusion filter at its default gain (MT0100P, "Filter Gain") — a filtered estimate errs at
   low frequency, not sample by sample.
 * 1.0 deg/min heading drift: without a usable magnetic reference, "attitude and heading estimates
@@ -39,9 +39,9 @@ Defaults and their sources:
   (Schepers, Giuberti & Bellusci, "Xsens MVN: Consistent Tracking of Human Motion Using Inertial
   Sensing", Xsens white paper, 2018), i.e. it does not hold heading to the magnetometer, so a slow
   heading drift of the whole body is what remains.
-* 5 cm per sqrt(minute) horizontal root drift, 1 cm vertical: the issue's "several cm per minute".
-  No public figure states MVN's in-place drift; Roetenberg et al. (2009) and Schepers et al. (2018)
-  describe contact-aided position that bounds it, and Xsens warns that unaided double integration
+* 5 cm per sqrt(minute) horizontal root drift, 1 cm vertical: an assumption of ours. No public
+  figure states MVN's in-place drift; Roetenberg et al. (2009) and Schepers et al. (2018) describe
+  contact-aided position that bounds it, and Xsens warns that unaided double integration
   of acceleration is usable "for a period of time only, in the order of seconds" (Xsens knowledge
   base, "How do I calculate position from acceleration"). The vertical scale is smaller because
   MVN's foot-floor contacts hold height.
@@ -95,15 +95,15 @@ class SuitErrorModel:
     """How a simulated suit's output departs from the truth; see the module docstring for the
     model and the sources of the defaults. All-zero angles and drifts reproduce the ground truth."""
 
-    #: RMS angle of the dynamic orientation error per segment, deg (issue: ~1 deg; MT0100P: 2 deg RMS
-    #: dynamic for a lone sensor).
+    #: RMS angle of the dynamic orientation error per segment, deg (MT0100P: 2 deg RMS dynamic for a
+    #: lone sensor; MVN's body model constrains segments further).
     orientation_noise_deg: float = 1.0
     #: Correlation time of the dynamic orientation error, s (~1 Hz filter crossover, MT0100P).
     orientation_noise_tau_s: float = 0.16
     #: Heading (yaw about world +Y) drift rate of the whole body, deg/min; the sign is drawn per run
     #: (MT0605P: "typically a degree every minute").
     heading_drift_deg_per_min: float = 1.0
-    #: Horizontal random-walk drift of the root position: std per axis after 1 min, m (issue:
+    #: Horizontal random-walk drift of the root position: std per axis after 1 min, m (assumption:
     #: several cm per minute).
     root_drift_m_per_sqrt_min: float = 0.05
     #: Vertical random-walk drift of the root position: std after 1 min, m (floor contacts bound it).

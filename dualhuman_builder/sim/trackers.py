@@ -11,7 +11,7 @@ nominal site on the body surface, :data:`~dualhuman_builder.rig.TRACKER_SITES`):
   velocities with white noise too;
 * tracking loss: events arrive as a Poisson process at ``loss_rate_per_min`` per minute of tracked
   time, each lasting a log-uniform time in ``loss_duration_s``. A loss is reported, as real trackers
-  do (capture-protocols.md; triad_openvr #16), either as ``valid=False`` with the last pose held,
+  do through OpenVR (``TriadSemi/triad_openvr`` issue 16), either as ``valid=False`` with the last pose held,
   or — a fraction ``loss_origin_fraction`` of events — as a jump of the pose to the origin
   (position 0, identity orientation, zero velocities) with ``valid`` still True;
 * clock: all trackers of one lighthouse system share a :class:`DeviceClock` that differs from the
@@ -31,11 +31,11 @@ Defaults and their sources:
   Tracker 3.0 with Vicon on a moving body. 1 mm white noise is our choice for a strapped, moving
   tracker; the sub-degree orientation noise our reading of the same studies. Systematic offsets
   and the frame tilt are biases left to calibration and not modelled here.
-* loss: 2 events per minute lasting 20-400 ms: the issue's "tens to hundreds of ms"; the rate is
-  an assumption for two people in close contact occluding each other. Niehorster et al. also found
+* loss: 2 events per minute lasting 20-400 ms: assumptions for two people in close contact
+  occluding each other. Niehorster et al. also found
   the tracking space offset changes after a loss; that is not modelled.
 * clock: 30 ppm drift, a typical crystal tolerance (the Awinda station, the suit's clock, is
-  specified at <= 1 ppm, capture-protocols.md), and an arbitrary 0.25 s offset — OpenVR exposes no
+  specified by Xsens at <= 1 ppm), and an arbitrary 0.25 s offset — OpenVR exposes no
   device time (openvr #1007); libsurvive's tracker timecode counts from power-on.
 * velocity noise 0.01 m/s and angular-velocity noise 0.02 rad/s: assumptions (OpenVR's velocities
   are filter outputs).
@@ -58,8 +58,8 @@ from dualhuman_builder.sim.suit import random_rotations
 from dualhuman_builder.rig import tracker_site
 from dualhuman_builder.tracks import SkeletonTrack
 
-#: Default tracker sites per actor: serial suffix -> MVN segment (the issue's pelvis, head, wrists
-#: and ankles: the hand and foot segment origins are the wrist and ankle joints).
+#: Default tracker sites per actor: serial suffix -> MVN segment (the capture protocol's pelvis,
+#: head, wrists and ankles: the hand and foot segment origins are the wrist and ankle joints).
 DEFAULT_SITES = {"PELVIS": "Pelvis", "HEAD": "Head", "LHAND": "LeftHand", "RHAND": "RightHand",
                  "LFOOT": "LeftFoot", "RFOOT": "RightFoot"}  # fmt: skip
 
@@ -92,7 +92,7 @@ class TrackerErrorModel:
     mount_rotation_deg: float = 10.0
     #: Tracking-loss events per minute of tracked time, per tracker (assumption for close contact).
     loss_rate_per_min: float = 2.0
-    #: Range of loss durations, s, drawn log-uniformly (issue: tens to hundreds of ms).
+    #: Range of loss durations, s, drawn log-uniformly (tens to hundreds of ms; assumption).
     loss_duration_s: tuple[float, float] = (0.02, 0.4)
     #: Fraction of loss events reported as a jump to the origin with ``valid`` True.
     loss_origin_fraction: float = 0.3

@@ -101,7 +101,7 @@ def test_batched_forward_matches_single_and_is_differentiable(body_model):
         m.shape_tensor({"stature": 1.8})
 
 
-def test_anny_skinning_reuses_its_kernel_and_skins_as_before(body_model):
+def test_anny_skinning_reuses_its_kernel_and_skins_each_frame_alike(body_model):
     """anny 0.6.2 defines a new warp kernel at every skinning call; the model makes it reuse one."""
     from anny.skinning import warp_skinning
 

@@ -34,7 +34,7 @@ from dualhuman_builder.sim.kinematics import DeviceClock
 from dualhuman_builder.sim.suit import simulate_suit
 from dualhuman_builder.tracks import SkeletonTrack
 
-HEADER = ">6sIBBIBBBBHH"  # the reference's header layout, written out here on purpose
+HEADER = ">6sIBBIBBBBHH"  # the MVN spec's header layout, written out here on purpose
 
 
 def _datagram(mtype: int, payload: bytes, *, items: int, counter=0, dgram=0x80, tc=0, char=0, segs=23, props=0,

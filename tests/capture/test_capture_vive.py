@@ -1,6 +1,6 @@
 """VIVE tracker sources: ``vive+udp://`` over real UDP sockets on 127.0.0.1 fed by the simulated
 devices' UdpPlayer, and ``vive+usb://`` — its HID report codec and decoder with encoded reports,
-and the real pyusb/libusb path without a device (this machine has no VIVE tracker)."""
+and the real pyusb/libusb path with no VIVE tracker plugged in."""
 
 from __future__ import annotations
 

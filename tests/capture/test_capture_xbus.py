@@ -366,4 +366,4 @@ def test_decoding_takes_microseconds():
             d.feed(f)
 
     per_frame_us = min(timeit.repeat(run, number=1, repeat=5)) / len(frames) * 1e6
-    assert per_frame_us < 60  # ~20 us measured on a slow 2-core VM (sum(range(100)) = 1.4 us there)
+    assert per_frame_us < 60  # a loose bound, far under the 2.5 ms period of a 400 Hz MTi

@@ -1,7 +1,8 @@
-"""Every encoder's bytes against the layouts of shared/reference/capture-protocols.md.
+"""Every encoder's bytes against the published layouts each wire module names (the MVN streaming
+spec, the Xbus and MTi-600 CAN drivers, OpenHMD's VIVE HID report, our bridge datagram).
 
-Each test reads the bytes back with its own ``struct`` formats and offsets, written here from the
-reference tables, never with a helper of the package.
+Each test reads the bytes back with its own ``struct`` formats and offsets, written here from
+those layouts, never with a helper of the package.
 """
 
 import math
@@ -23,7 +24,7 @@ SEGMENTS = (
     "Pelvis", "L5", "L3", "T12", "T8", "Neck", "Head", "RightShoulder", "RightUpperArm", "RightForeArm",
     "RightHand", "LeftShoulder", "LeftUpperArm", "LeftForeArm", "LeftHand", "RightUpperLeg", "RightLowerLeg",
     "RightFoot", "RightToe", "LeftUpperLeg", "LeftLowerLeg", "LeftFoot", "LeftToe",
-)  # fmt: skip  -- the reference's list, in ID order
+)  # fmt: skip  -- the MVN spec's list, in ID order
 # id, sample counter, datagram counter, items, time code, char, segments, props, fingers, reserved, payload size
 MVN_HEADER = ">6sIBBIBBBBHH"
 S2 = math.sqrt(0.5)

@@ -195,8 +195,8 @@ def test_two_bone_ik_reaches_bends_towards_the_pole_and_clamps(body_model):
 def test_ground_truth_distances_sign_by_winding_number_at_any_depth(body_model):
     """Two average bodies, the second turned to face the first and pushed 10 cm into it (one
     frame): the stored distances (m) agree with igl's winding-number signed distance on every
-    vertex inside the partner, however deep (the banded pseudonormal query alone left vertices
-    deeper than DISTANCE_BAND as NaN, so the contract never saw them), and outside within the band."""
+    vertex inside the partner, however deep (the banded pseudonormal query alone leaves vertices
+    deeper than DISTANCE_BAND as NaN, out of the contract's sight), and outside within the band."""
     import igl
 
     from dualhuman_builder.sim.quality import penetration_depth
@@ -229,8 +229,8 @@ def test_ground_truth_distances_sign_by_winding_number_at_any_depth(body_model):
 def test_contact_corrections_ease_in_and_out(body_model):
     """The contact correction's offsets ease over CONTACT_EASE_S at both ends of a contact
     instead of switching in one frame: the hug's pelvises (whose gap the torso correction
-    closes) never accelerate like a jump. Before, hug seed 2's pelvises jumped 39 mm each in one
-    frame at each end of the embrace (8.8 m/s^2 at 15 fps; walking here stays under 3 m/s^2)."""
+    closes) never accelerate like a jump: under 5 m/s^2, where walking stays under 3 m/s^2 and a
+    4 cm correction switched on in one frame at 15 fps reads 9 m/s^2."""
     from dualhuman_builder.sim.scenes import _ease_out
 
     # the easing itself: contact values carried onto the guard frames, fading to 0, continuously

@@ -108,7 +108,7 @@ def test_play_studio_onto_loopback_udp_and_virtual_can(source):
     assert len(got_mvn) == reports["mvn"].sent
     assert reports["mvn"].packets * 0.9 < reports["mvn"].sent < reports["mvn"].packets * 0.99
     assert all(d[:4] == b"MXTP" for d in got_mvn)
-    types = {d[4:6] for d in got_mvn}  # reference: 'MXTP' + two digits of the type, 24-byte header
+    types = {d[4:6] for d in got_mvn}  # the MVN spec: 'MXTP' + two digits of the type, 24-byte header
     assert {b"02", b"25"} <= types
     characters = {d[16] for d in got_mvn if d[4:6] == b"02"}  # header byte 16: character ID
     assert characters == {0, 1}
@@ -157,7 +157,7 @@ def test_scene_and_sim_commands(tmp_path):
 
 
 def test_mvn_header_layout_read_independently(source):
-    """One pose datagram of the studio read with struct per the reference (not our decoder)."""
+    """One pose datagram of the studio read with struct per the MVN streaming spec (not our decoder)."""
     from dualhuman_builder.capture.wire.mvn import encode_frame
 
     frame = next(iter(source.studio.suits[1]))

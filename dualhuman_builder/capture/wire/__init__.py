@@ -1,8 +1,8 @@
 """Wire formats of the capture devices: encoders (typed samples -> the bytes devices send, used
 by the simulated devices) and decoders (bytes -> typed samples, used by the capture sources).
 
-One module per device family, each following ``shared/reference/capture-protocols.md`` byte for
-byte:
+One module per device family, each following byte for byte the published specification or
+open-source driver its docstring names:
 
 * :mod:`.mvn` — Xsens MVN real-time network stream ("MXTP" UDP datagrams, big-endian): pose
   quaternions (type 02), meta data (12), scale (13), time code (25); several characters on one

@@ -1,4 +1,4 @@
-"""Xsens MTi-600 CAN frames (``shared/reference/capture-protocols.md``, from the ``xsens.dbc`` of
+"""Xsens MTi-600 CAN frames (signals as in ``config/xsens.dbc`` of
 ``jiminghe/Xsens_MTi_CAN_ROS_Driver``), as python-can :class:`can.Message` objects.
 
 Standard 11-bit identifiers; every signal **Motorola (big-endian)**. One sample becomes, in this

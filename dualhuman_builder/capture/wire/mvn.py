@@ -1,12 +1,13 @@
 """Xsens MVN real-time network stream ("MXTP") datagrams: encoders for types 02, 12, 13 and 25;
 header and payload decoders for types 02, 12, 13, 20, 21, 22, 24 and 25 (see "Decoding" below).
 
-Layout (``shared/reference/capture-protocols.md``; all fields **big-endian**): every datagram is a
-24-byte :data:`HEADER` ``'>6sIBBIBBBBHH'`` — ID string ``b"MXTP" + two ASCII digits`` of the
-message type, sample counter (u32), datagram counter (u8), number of items in this datagram (u8),
-time code (u32, ms since the start of the recording clock), character ID (u8), number of body
-segments (u8), props (u8), finger segments (u8), reserved (u16, zero), payload size (u16, bytes
-after the header) — followed by the payload.
+Layout (Xsens, "MVN real-time network streaming protocol specification", "the spec" below;
+parsers in ``hrii-iit/xsens_mvn_sdk`` and ``xsens/xsens_mvn_ros2``; all fields **big-endian**):
+every datagram is a 24-byte :data:`HEADER` ``'>6sIBBIBBBBHH'`` — ID string ``b"MXTP" + two ASCII
+digits`` of the message type, sample counter (u32), datagram counter (u8), number of items in
+this datagram (u8), time code (u32, ms since the start of the recording clock), character ID
+(u8), number of body segments (u8), props (u8), finger segments (u8), reserved (u16, zero),
+payload size (u16, bytes after the header) — followed by the payload.
 
 Several characters (actors) on one port differ **only** in the character-ID byte (offset 16).
 
@@ -26,7 +27,7 @@ Conflicts in the sources, and the readings chosen here:
   i.e. type 02 arrives in metres, and that is what MVN sends in practice.
 * **Type 25 payload: int32 length + ``HH:MM:SS.mmm``** (16 bytes). The spec's type-25 section
   says "12 byte string", but its rule for strings (2.5.12: int32-length-prefixed UTF-8, no
-  terminator) and the reference give the prefixed form. Hours wrap at 24.
+  terminator) gives the prefixed form. Hours wrap at 24.
 * **Point IDs** (100*seg+pt vs 256*seg+pt) do not arise: type 13 sends the segment ID and the
   point's local ID as two separate u16 fields. Type 23 (item size 44 vs 68) is not encoded.
 
@@ -553,7 +554,7 @@ def decode_pose(payload: bytes, items: int, props: int = 0, fingers: int = 0) ->
     :class:`MvnFormatError` if the items do not fill the payload exactly, a value is not finite, or
     the quaternions' squared norms sum to more than :data:`QUATERNION_NORM_TOLERANCE` off ``items``.
 
-    Vectorised (one pass of numpy over the message: a few microseconds for 23 segments)."""
+    Vectorised: one pass of numpy over the whole message, no per-segment Python."""
     if items * POSE_QUATERNION_ITEM.size != len(payload) or items == 0:
         raise MvnFormatError(f"type 02: {items} items of 32 bytes do not fill the {len(payload)}-byte payload")
     v = np.ndarray((items, 8), ">f4", payload).astype(np.float64)  # column 0: the ID's bits, unused
@@ -605,8 +606,9 @@ def decode_linear_kinematics(payload: bytes, items: int, props: int = 0, fingers
 
 
 class MvnAngularKinematics(NamedTuple):
-    """Type-22 payload: ``segment_ids (N,)`` and ``segment_names``, ``orientations (N, 4)`` (x, y, z, w), world
-    ``angular_velocities`` rad/s and ``angular_accelerations`` rad/s^2 ``(N, 3)``, Y-up."""
+    """Type-22 payload: ``segment_ids (N,)`` and ``segment_names``, ``orientations (N, 4)``
+    (x, y, z, w), world ``angular_velocities`` rad/s and ``angular_accelerations`` rad/s^2
+    ``(N, 3)``, Y-up."""
 
     segment_ids: np.ndarray
     segment_names: tuple[str, ...]

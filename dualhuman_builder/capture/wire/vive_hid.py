@@ -1,5 +1,5 @@
 """VIVE tracker IMU over USB HID: the report a tracker plugged in by cable sends on its HID
-interrupt endpoint (capture-protocols.md, after OpenHMD ``src/drv_htc_vive/vive.h``).
+interrupt endpoint (layout and scales as in OpenHMD's ``src/drv_htc_vive/vive.h``).
 
 **The pose is not in the HID stream**: a tracker's pose needs the lighthouse solver (OpenVR or
 libsurvive); over raw USB we read only its IMU — acceleration and angular rate.

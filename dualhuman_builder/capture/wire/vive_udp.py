@@ -101,8 +101,8 @@ def decode_tracker(data: bytes, host_time_ns: int) -> TrackerSample:
     """Inverse of :func:`encode_tracker`: one 128-byte datagram -> :class:`TrackerSample`.
 
     ``valid`` is the datagram's pose-valid flag as sent (the device-connected flag is not part of
-    the sample: read it with :func:`datagram_connected`). Positions and quaternions come back as the exact float64 sent, velocities as the float32 sent
-    (widened to float64); all arrays are read-only. ``host_time_ns``: when the datagram arrived
+    the sample: read it with :func:`datagram_connected`). Positions and quaternions come back as
+    the exact float64 sent, velocities as the float32 sent (widened to float64); all arrays are read-only. ``host_time_ns``: when the datagram arrived
     (int ns). Raises :class:`ViveFormatError` (with the counter name) for anything malformed;
     the payload of a pose flagged invalid is not checked (it is meaningless by definition).
     """

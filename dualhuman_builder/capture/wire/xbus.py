@@ -1,7 +1,7 @@
 """Xsens MTi "Xbus" serial protocol: frames, MTData2 records, a stream parser and record decoder,
 and a simulated device's replies.
 
-Frame (``shared/reference/capture-protocols.md``, from ``ethz-asl/ethzasl_xsens_driver``)::
+Frame (as ``ethz-asl/ethzasl_xsens_driver``, ``nodes/mtdevice.py`` and ``nodes/mtdef.py``, reads it)::
 
     FA  FF  MID  LEN  [FF LENH LENL when the data is longer than 254 bytes]  DATA  CS
 
