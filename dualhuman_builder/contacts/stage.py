@@ -4,7 +4,7 @@
 Reads the fit stage's ``bodies.npz`` (:class:`~dualhuman_builder.tracks.InteractionSequence`) and
 writes, under ``WS/artifacts/TAKE/_take/contacts/``:
 
-* ``contacts.npz``: the :class:`~dualhuman_builder.contacts.compute.ContactResult` (labels
+* ``contacts.npz``: the :class:`~dualhuman_builder.contacts.result.ContactResult` (labels
   bit-packed, float16 distances, per-frame flags, events and stats);
 * ``contacts.json``: region-level events, per-actor contact-vertex counts per frame, stats.
 
@@ -71,8 +71,8 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
 
 
 def load_contacts(ws, take: str):
-    """The take's :class:`~dualhuman_builder.contacts.compute.ContactResult` (its contacts stage
+    """The take's :class:`~dualhuman_builder.contacts.result.ContactResult` (its contacts stage
     must be done)."""
-    from dualhuman_builder.contacts.compute import ContactResult
+    from dualhuman_builder.contacts.result import ContactResult
 
     return ContactResult.load(CONTACTS.artifact(ws, take, CONTACTS_FILE))

@@ -1,18 +1,22 @@
 """Contacts of many frames in worker processes.
 
-``igl.signed_distance`` holds the GIL for the whole call, so threads cannot share its work (each
-process already keeps about two CPUs busy: its narrow phase runs in helper threads outside the GIL). Long takes are therefore split across
-``workers`` processes, each started as ``python -m dualhuman_builder.contacts.workers`` (a fresh
-interpreter: no fork of a process holding torch's and warp's threads, and no re-import of the
-caller's ``__main__``, so scripts without a ``__main__`` guard work). Worker ``k`` of ``W`` takes
-frames ``k, k + W, ...`` (contact phases are not spread evenly over a take; interleaving is). It
-imports numpy, scipy, libigl and warp but not torch (about 1 s to start), which is why short
-sequences stay in the calling process (:data:`MIN_FRAMES_PER_WORKER`).
+``igl.signed_distance`` holds the GIL for the whole call, so threads cannot share its work; long
+sequences are therefore split over ``workers`` processes. Each process already keeps about two
+CPUs busy (its narrow phase runs in helper threads outside the GIL), hence one worker per two CPUs
+(``docs/decisions/0021-contacts-libigl-on-possible-contacts.md``).
 
-The vertices travel through ``.npy`` files in a temporary folder (memory-mapped by the workers),
-the topology as a pickle, and each worker writes its frames' results to one ``.npz`` and prints
-one line per frame for progress. The folder is removed afterwards, also on failure. A worker
-that fails raises :class:`RuntimeError` with its exit status and the end of its stderr.
+Each worker is a fresh interpreter, ``python -m dualhuman_builder.contacts.workers``: no fork of a
+process holding torch's and warp's threads, and no re-import of the caller's ``__main__`` (scripts
+without a ``__main__`` guard work). Worker ``k`` of ``W`` takes frames ``k, k + W, ...``: contact
+phases bunch up within a take, interleaving spreads them. It runs the kernel of
+:mod:`~dualhuman_builder.contacts.frames` and imports numpy, scipy, libigl and warp but not torch;
+its start-up still costs more than a few dozen frames, so short sequences stay in the calling
+process (:data:`MIN_FRAMES_PER_WORKER`).
+
+The vertices travel through ``.npy`` files in a temporary folder (memory-mapped by the workers, in
+their own dtype), the topology as a pickle; each worker writes its frames' results to one ``.npz``
+and prints one line per frame for progress. The folder is removed afterwards, also on failure. A
+worker that fails raises :class:`RuntimeError` with its exit status and the end of its stderr.
 """
 
 from __future__ import annotations
@@ -30,27 +34,28 @@ from typing import Callable, Iterator
 import numpy as np
 
 from dualhuman_builder.children import child_env, scratch_with_children
+from dualhuman_builder.contacts.frames import COUNT_KEYS, compute_frames
 
-# frames per worker below which a worker's start-up (~1 s) costs more than it saves
+#: Frames per worker below which a worker's start-up (a fresh interpreter importing libigl and
+#: warp) costs more than it saves.
 MIN_FRAMES_PER_WORKER = 48
 
 
 def auto_workers(frames: int, cpus: int | None = None) -> int:
-    """Processes for ``frames`` frames to compute: one per two CPUs (each process runs the narrow
-    phase in helper threads; at most 8) as long as each gets at least
-    :data:`MIN_FRAMES_PER_WORKER` frames; 1 means "in the calling process" (always on 2 CPUs,
-    where two processes measured slower than one: 52.3 against 63.5 frame pairs/s on a hug x4,
-    ``benchmarks/bench_contacts.py``)."""
+    """Processes for ``frames`` frames: one per two CPUs (each process runs its narrow phase in
+    helper threads), at most 8, while each gets at least :data:`MIN_FRAMES_PER_WORKER` frames.
+    ``cpus`` defaults to ``os.cpu_count()``. 1 means "in the calling process", which is always the
+    answer on 2 CPUs (``docs/decisions/0021-contacts-libigl-on-possible-contacts.md``)."""
     cpus = cpus or os.cpu_count() or 1
     return max(1, min(cpus // 2, 8, frames // MIN_FRAMES_PER_WORKER))
 
 
 def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.ndarray, threshold: float, band: float,
                    workers: int, counts: dict, on_done: Callable[[], None] | None = None) -> Iterator[tuple[int, object]]:  # fmt: skip
-    """Results of :func:`~dualhuman_builder.contacts.compute._compute_frames` for ``frames`` (indices
-    into ``verts_a``/``verts_b`` ``(T, V, 3)``) computed by ``workers`` processes: yields ``(t,
-    result)`` once all are done; adds the workers' query counts to ``counts``; ``on_done()`` is
-    called (in this thread) as each frame finishes."""
+    """Results of :func:`~dualhuman_builder.contacts.frames.compute_frames` for ``frames`` (indices
+    into ``verts_a``/``verts_b`` ``(T, V, 3)`` m) computed by ``workers`` processes: yields ``(t,
+    result)`` in frame order once all are done; adds the workers' query counts to ``counts``;
+    ``on_done()`` is called (in this thread) as each frame finishes."""
     frames = np.asarray(frames, dtype=np.int64)
     with scratch_with_children("dualhuman-contacts-") as (tmp, procs):
         for name, v in (("verts_a", verts_a), ("verts_b", verts_b)):  # in their own dtype: same answers
@@ -110,8 +115,8 @@ def run_in_workers(topo, verts_a: np.ndarray, verts_b: np.ndarray, frames: np.nd
 
 
 def _main(argv: list[str]) -> None:
-    from dualhuman_builder.contacts.compute import COUNT_KEYS, _compute_frames
-
+    """One worker: ``argv`` = ``[folder, k, workers, threshold_m, band_m]`` as :func:`run_in_workers`
+    passes them; writes ``out_{k}.npz`` in the folder."""
     tmp, k, workers, threshold, band = Path(argv[0]), int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4])
     with open(tmp / "topology.pkl", "rb") as f:
         topo = pickle.load(f)
@@ -124,7 +129,7 @@ def _main(argv: list[str]) -> None:
     computed = np.zeros(len(index), dtype=bool)
     pairs: list[list] = [[] for _ in index]
     counts = dict.fromkeys(COUNT_KEYS, 0)
-    for j, (_, result) in enumerate(_compute_frames(topo, va, vb, index, threshold, band, counts)):
+    for j, (_, result) in enumerate(compute_frames(topo, va, vb, index, threshold, band, counts)):
         if result is not None:
             labels[j], distances[j], frame_pairs = result
             computed[j] = True

@@ -5,7 +5,7 @@ the ``contacts`` stage's labels when that stage is complete, the ``render`` stag
 is, the take's labels, texts and roles (its sequences' and annotations', checked against the
 workspace's vocabulary), and the take's actors as subjects. Takes without a fit
 are listed as left out (an error with ``strict=True``); what each exported sequence lacks is listed
-by :func:`~dualhuman_builder.export.layout.export_dataset` under ``incomplete``.
+by :func:`~dualhuman_builder.export.writer.export_dataset` under ``incomplete``.
 """
 
 from __future__ import annotations
@@ -26,14 +26,14 @@ def _vocabulary(ws):
 
 
 def workspace_items(ws, takes: list[str] | None = None, vocabulary=None) -> tuple[list, list[str]]:
-    """``(items, left_out)``: an :class:`~dualhuman_builder.export.layout.ExportItem` per take of
+    """``(items, left_out)``: an :class:`~dualhuman_builder.export.items.ExportItem` per take of
     ``takes`` (default: all) with a complete fit, and the names of those without one. Labels,
     texts, roles and the symmetric flag come from the take's sequences and annotations
     (:func:`~dualhuman_builder.export.annotate.take_labels`), checked against ``vocabulary``
     (default: the workspace's, :func:`~dualhuman_builder.labels.load_vocabulary`)."""
     from dualhuman_builder.contacts.stage import CONTACTS, load_contacts
     from dualhuman_builder.export.annotate import take_labels
-    from dualhuman_builder.export.layout import ExportItem
+    from dualhuman_builder.export.items import ExportItem
     from dualhuman_builder.fit.stage import FIT, load_bodies
     from dualhuman_builder.render.stage import RENDER
 
@@ -70,7 +70,7 @@ def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: 
                subject_disjoint: bool = False, seed: int = 0, log: Callable[[str], None] = print) -> dict:  # fmt: skip
     """Export the workspace's fitted takes to ``out_dir``; returns the manifest (plus
     ``left_out``: takes without a fit)."""
-    from dualhuman_builder.export.layout import export_dataset
+    from dualhuman_builder.export.writer import export_dataset
 
     vocabulary = _vocabulary(ws)
     items, left_out = workspace_items(ws, takes, vocabulary)

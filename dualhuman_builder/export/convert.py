@@ -110,7 +110,7 @@ from dualhuman_builder.export.features import (
     root_facing,
 )
 from dualhuman_builder.export.interhuman import INTERHUMAN_FPS, PairTransform, interhuman_features
-from dualhuman_builder.export.layout import MANIFEST, PERSONS, json_bytes, read_manifest, read_npz
+from dualhuman_builder.export.files import MANIFEST, PERSONS, json_bytes, read_manifest, read_npz
 from dualhuman_builder.fileio import atomic_open
 
 CONVERSION = "conversion.json"

@@ -40,12 +40,12 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from dualhuman_builder.export.features import FEATURE_DIM, mirror_features, mirror_text
-from dualhuman_builder.export.layout import load_motion, read_manifest, read_npz
+from dualhuman_builder.export.files import load_motion, read_manifest, read_npz
 from dualhuman_builder.export.shards import decode_sample, iter_shards
 
 #: Default per-process budget of cached motion features (both persons), MiB: a whole split of most
-#: exports fits, so shuffled access does not reload files (1,000 ten-second sequences at 30 fps are
-#: ~614 MiB).
+#: exports fits, so shuffled access does not reload files (1,000 ten-second sequences at 30 fps take
+#: 614 MiB; ``docs/decisions/0024-export-format-and-loaders.md``).
 CACHE_MB = 1024.0
 
 
@@ -106,11 +106,12 @@ class _Augment:
 
     @property
     def epoch(self) -> int:
+        """The epoch of the augmentation draws (:meth:`set_epoch`)."""
         return int(self._epoch[0])
 
     def draws(self, key: int) -> tuple[float, float]:
-        """Two uniform [0, 1) numbers from ``(seed, epoch, key)`` (a keyed hash: 1.5 us on this
-        project's CI machine, where seeding a numpy generator per window took 85 us)."""
+        """Two uniform [0, 1) numbers from ``(seed, epoch, key)``: a keyed hash, much cheaper per
+        window than seeding a numpy generator, and the same in every worker."""
         h = hashlib.blake2b(f"{self.seed},{self.epoch},{int(key)}".encode(), digest_size=16).digest()
         return int.from_bytes(h[:8], "little") / 2.0**64, int.from_bytes(h[8:], "little") / 2.0**64
 

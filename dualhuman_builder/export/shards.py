@@ -24,7 +24,7 @@ import tarfile
 from pathlib import Path, PurePosixPath
 from typing import Any, Collection, Iterable, Iterator
 
-from dualhuman_builder.export.layout import FORMAT_VERSION, SEQUENCE_JSON, json_bytes, read_manifest, read_npz
+from dualhuman_builder.export.files import FORMAT_VERSION, SEQUENCE_JSON, json_bytes, read_manifest, read_npz
 from dualhuman_builder.fileio import atomic_open
 
 DEFAULT_MAX_BYTES = 256 * 2**20

@@ -22,7 +22,7 @@ import numpy as np
 
 from dualhuman_builder.export.features import FEATURE_DIM, motion_features
 from dualhuman_builder.labels import Vocabulary
-from dualhuman_builder.export.layout import (
+from dualhuman_builder.export.files import (
     LABELS_JSON,
     MANIFEST,
     OWN_FOLDERS,

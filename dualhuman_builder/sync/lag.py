@@ -1,13 +1,15 @@
-"""Residual lag between two orientation streams of one rigid body (a VIVE tracker and the suit
-segment it is strapped to), from the cross-correlation of their angular speeds.
+"""Residual lag between two streams of one rigid body (a VIVE tracker and the suit segment it is
+strapped to), from the cross-correlation of their angular (or linear) speeds.
 
 The angular speed ``|w|`` of a rigid body does not depend on the frame a sensor is mounted in (a
 constant mounting rotation ``M`` turns ``q_k^-1 q_{k+1}`` into ``M^-1 q_k^-1 q_{k+1} M``, the same
 angle) nor on a constant rotation of the world, so two sensors on one segment see the same speed
-up to noise, whatever their mounting and world frames. :func:`angular_speed` turns orientations
-into speeds, :func:`estimate_lag` finds the shift that best aligns two speed signals,
-:func:`combine_lags` merges the lags of several trackers sharing one clock, and
-:func:`with_carried_lag` joins a take's lag with the one its session's calibration take measured.
+up to noise, whatever their mounting and world frames; the linear speed serves segments that move
+without turning. :func:`angular_speed` and :func:`linear_speed` turn poses into speeds,
+:func:`estimate_lag` finds the shift that best aligns two speed signals, :func:`combine_lags`
+merges the lags of several trackers sharing one clock, and :func:`with_carried_lag` joins a
+take's lag with the one the studio day's calibration take measured
+(``docs/decisions/0009-tracker-lag-by-speed.md``, ``docs/decisions/0013-calibration-take.md``).
 
 Sign convention: ``lag_ns > 0`` means stream b's timestamps are **late**: ``s_a(t) ≈ s_b(t + lag)``,
 so ``t_b - lag_ns`` puts b on a's time axis.
@@ -26,7 +28,9 @@ from scipy.optimize import minimize_scalar
 _GRID_NS = 1_000_000
 #: Grid points farther than this from a sample on both sides (a hole in the data) are excluded, ns.
 _MAX_GAP_NS = 50_000_000
+#: Shortest overlap of two streams (s) a lag is estimated from.
 _MIN_OVERLAP_S = 2.0
+#: Lowest normalised cross-correlation accepted as a shared motion.
 _MIN_PEAK = 0.5
 #: Angular-speed standard deviation (rad/s) below which a stream counts as motionless.
 _MIN_MOTION_RAD_S = 0.02
@@ -58,6 +62,7 @@ class LagEstimate:
 
 
 def _check_times(name: str, t) -> np.ndarray:
+    """``t`` as a 1-D numeric array of times (ns), finite; ValueError naming ``name`` otherwise."""
     t = np.asarray(t)
     if t.ndim != 1:
         raise ValueError(f"{name} must be 1-D, got shape {t.shape}")
@@ -221,6 +226,7 @@ def _ncc_lags(a: np.ndarray, ma: np.ndarray, b: np.ndarray, mb: np.ndarray, max_
 
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised cross-correlation of equal-length ``a`` and ``b`` at zero shift (-1 when either is constant)."""
     a = a - a.mean()
     b = b - b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
@@ -365,17 +371,17 @@ def combine_lags(estimates, floor_ns: float = 100_000.0, max_dev_ns: float = 5_0
 def with_carried_lag(own: LagEstimate | None, carried: LagEstimate, changed_ns: float = LAG_CHANGED_NS,
                      floor_ns: float = 100_000.0) -> tuple[LagEstimate, bool]:
     """One source's lag from this take's own estimate ``own`` (None: no tracker of the source moved
-    enough) and ``carried``, the lag the session's calibration take measured for the same source.
+    enough) and ``carried``, the lag the studio day's calibration take measured for the same source.
 
     The lag is the difference of two transport latencies (the trackers' and the suits'), a property
-    of the devices and the network that holds for a session, so a calibration take -- long, every
-    segment turning -- measures it better than a short take whose actors hardly move (seconds of
-    speeds, and position-speed estimates that share one error within a take: ~0.4 ms RMS on the
-    accuracy benchmark's 3-6-second takes, 1.2 ms on one). The two are averaged with weights ``1 / (std^2 + floor_ns^2)`` (a
-    non-finite ``std_ns`` counts as ``changed_ns``); the result's ``std_ns`` is ``1 / sqrt(sum w)``.
-    When ``own`` lies farther than ``changed_ns`` (default 3 ms) from ``carried``, the latency
-    changed since the calibration (a restarted or re-configured source): ``own`` is returned alone
-    with ``changed=True``. The result's ``peak`` is ``own``'s. Returns ``(estimate, changed)``."""
+    of the devices and the network that holds for the day, so a calibration take (long, every
+    segment turning) measures it better than a short take whose actors hardly move
+    (``docs/decisions/0013-calibration-take.md``). The two are averaged with weights
+    ``1 / (std^2 + floor_ns^2)`` (a non-finite ``std_ns`` counts as ``changed_ns``); the result's
+    ``std_ns`` is ``1 / sqrt(sum w)``. When ``own`` lies farther than ``changed_ns`` (default 3 ms)
+    from ``carried``, the latency changed since the calibration (a restarted or re-configured
+    source): ``own`` is returned alone with ``changed=True``. The result's ``peak`` is ``own``'s.
+    Returns ``(estimate, changed)``."""
     if not math.isfinite(carried.lag_ns):
         raise ValueError(f"the carried lag must be finite, got {carried.lag_ns}")
     if own is None:

@@ -10,6 +10,8 @@ import numpy as np
 
 
 def _brackets(t_src: np.ndarray, t_dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(i0, i1, a)`` ``(T,)``: the source samples around each target time and the fraction of
+    the way from ``i0`` to ``i1`` (0 where they coincide)."""
     i1 = np.searchsorted(t_src, t_dst, side="left")
     i1 = np.clip(i1, 1, len(t_src) - 1)
     i0 = i1 - 1
@@ -19,6 +21,8 @@ def _brackets(t_src: np.ndarray, t_dst: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _inside(t_src, t_dst, i0, i1, valid, max_gap_s) -> np.ndarray:
+    """``(T,)`` bool: target times within the source span, bracketed by valid samples no more
+    than ``max_gap_s`` apart."""
     ok = (t_dst >= t_src[0] - 1e-9) & (t_dst <= t_src[-1] + 1e-9) & (t_src[i1] - t_src[i0] <= max_gap_s)
     if valid is not None:
         ok = ok & valid[i0] & valid[i1]

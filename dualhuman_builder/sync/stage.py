@@ -87,6 +87,7 @@ def load_sync(ws, take: str):
 
 
 def _json(o):
+    """JSON fallback for the report: numpy scalars and arrays as Python values, anything else as str."""
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):

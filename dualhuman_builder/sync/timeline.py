@@ -15,12 +15,12 @@ Trackers
     their lags are combined into one correction. Then each tracker's mounting rotation and offset on
     its segment, the suit's heading against the tracker world, the suit's position drift and its
     segments' misalignments along each tracker's chain are solved by least squares
-    (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`). With ``mounts_from`` (the sync of a
-    calibration take of the same session), each tracker found there by serial, on the same
-    segment of the same actor, keeps that take's mount
-    (:class:`~dualhuman_builder.sync.mount.CarriedMounts`): a take whose actors hardly move then
-    still gets its heading and its trackers' shared offset right. The calibration's lag per
-    tracker source is the session's latency difference, and is averaged with the take's own.
+    (:func:`~dualhuman_builder.sync.mount.calibrate_mounts`). With ``mounts_from`` (the sync of the
+    studio day's calibration take), each tracker found there by serial, on the same segment of the
+    same actor, keeps that take's mount (:class:`~dualhuman_builder.sync.mount_types.CarriedMounts`):
+    a take whose actors hardly move then still gets its heading and its trackers' shared offset
+    right. The calibration's lag per tracker source is the day's latency difference, and is
+    averaged with the take's own (``docs/decisions/0013-calibration-take.md``).
 
 Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
 ``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
@@ -48,7 +48,7 @@ MAX_GAP_S = 0.05
 #: finer knots let it absorb the suit's limb errors and the mounts' offsets.
 MOUNT_DRIFT_KNOTS_S = 1.0
 #: Prior std per axis (deg) of each suit segment's constant misalignment, solved with the mounts
-#: (:class:`~dualhuman_builder.sync.mount.SuitChain`).
+#: (:class:`~dualhuman_builder.sync.mount_types.SuitChain`; ``docs/decisions/0012-suit-chain-misalignments.md``).
 CHAIN_PRIOR_DEG = 2.0
 _PARENT_INDEX = [MVN_SEGMENTS.index(MVN_PARENTS[g]) if MVN_PARENTS[g] else -1 for g in MVN_SEGMENTS]
 #: Speed spread (std) below which a stream is too still for a lag: angular rad/s, linear m/s.
@@ -72,7 +72,7 @@ class ActorStreams:
     ``suit_rot (T, 23, 4)`` xyzw and ``suit_pos (T, 23, 3)`` m in the suit's world (MVN segment
     order), ``suit_valid (T,)``; trackers ``serials (K,)``, ``segments (K,)`` (MVN names),
     ``trk_rot (T, K, 4)``, ``trk_pos (T, K, 3)`` in the tracker world, ``trk_valid (T, K)``.
-    ``mounts``: the :class:`~dualhuman_builder.sync.mount.MountCalibration` (None without trackers).
+    ``mounts``: the :class:`~dualhuman_builder.sync.mount_types.MountCalibration` (None without trackers).
     """
 
     actor: str
@@ -98,12 +98,15 @@ class SyncResult:
     report: dict = field(default_factory=dict)
 
     def actor(self, name: str) -> ActorStreams:
+        """The streams of actor ``name``; KeyError naming the take's actors when there is none."""
         for a in self.actors:
             if a.actor == name:
                 return a
         raise KeyError(f"no actor {name!r} in the synced take; it has {[a.actor for a in self.actors]}")
 
     def save(self, path: str | Path) -> Path:
+        """One ``.npz`` (atomic, :func:`~dualhuman_builder.fileio.save_npz`): the arrays under
+        ``<actor>/...``, each actor's mounts under ``<actor>/mount/<field>``, the report as metadata."""
         arrays: dict[str, np.ndarray] = {"times_s": self.times_s}
         for a in self.actors:
             p = f"{a.actor}/"
@@ -118,7 +121,8 @@ class SyncResult:
 
     @classmethod
     def load(cls, path: str | Path) -> "SyncResult":
-        from dualhuman_builder.sync.mount import MountCalibration
+        """A result written by :meth:`save`; FormatError for a missing, foreign or newer file."""
+        from dualhuman_builder.sync.mount_types import MountCalibration
 
         arrays, meta = load_npz(path, "SyncResult", SYNC_VERSION, required=("times_s",))
         actors = []
@@ -138,6 +142,9 @@ class SyncResult:
 # ------------------------------------------------------------------------------------------
 @dataclass
 class _Stream:
+    """One suit or tracker channel of a take: ``device_ns``, ``host_ns`` ``(N,)`` float64 ns, its
+    ``cols`` as :func:`~dualhuman_builder.capture.log.reader.read_columns` gives them."""
+
     key: str
     actor: str | None
     source: str
@@ -159,6 +166,8 @@ def _suit_device_ns(cols: dict) -> np.ndarray:
 
 
 def _streams(columns: dict) -> tuple[list[_Stream], list[_Stream]]:
+    """``(suits, trackers)`` of a take's columns: suits in MVN character order, trackers bound
+    to an actor's segment by the rig (others are left out)."""
     suits, trackers = [], []
     for key, ch in columns.items():
         meta = ch.metadata or {}
@@ -189,11 +198,11 @@ def describe_mount(m, k: int) -> dict:
 
 
 def carry_mounts(calibration: SyncResult, actor: str, serials, segments, source: str = ""):
-    """The :class:`~dualhuman_builder.sync.mount.CarriedMounts` of ``actor``'s trackers
+    """The :class:`~dualhuman_builder.sync.mount_types.CarriedMounts` of ``actor``'s trackers
     (``serials``, ``segments`` in this take's order) from ``calibration``, a calibration take's
     :class:`SyncResult`: a tracker is carried when the same actor wore the same serial on the same
     segment there and it was calibrated; the suit's chain misalignments come with them."""
-    from dualhuman_builder.sync.mount import CarriedMounts
+    from dualhuman_builder.sync.mount_types import CarriedMounts
 
     try:
         cal = calibration.actor(actor)
@@ -225,7 +234,7 @@ def _carried_lags(calibration: SyncResult) -> dict:
 def _report_carried(report: dict, actor: str, serials, carried, mounts, source: str, say) -> None:
     """``report["mounts_from"]``: which of ``actor``'s trackers kept the calibration take's mount,
     and warnings for those that could not."""
-    from dualhuman_builder.sync.mount import MOVED_DEG
+    from dualhuman_builder.sync.mount_rotation import MOVED_DEG
 
     entry = report.setdefault("mounts_from", {"take": source})
     kept = [s for s, c in zip(serials, mounts.carried) if c]
@@ -243,6 +252,7 @@ def _report_carried(report: dict, actor: str, serials, carried, mounts, source: 
 
 
 def _ms(x: float) -> float:
+    """Seconds ``x`` as milliseconds rounded to 0.1 us, for the report."""
     return round(float(x) * 1e3, 4)
 
 
@@ -255,16 +265,17 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     suits' order); every one needs a suit. ``use_trackers=False`` ignores trackers (to measure what
     fusion buys). ``suit_chain`` (default True): solve each suit segment's constant misalignment on
     the chains from the pelvis to the trackers with the mounts
-    (:class:`~dualhuman_builder.sync.mount.SuitChain`, prior :data:`CHAIN_PRIOR_DEG`); False leaves
-    the suit's limb errors to the mounts and the drift, as before. ``mounts_from``: the
-    :class:`SyncResult` of a calibration take of the same session (named ``mounts_from_take`` in
+    (:class:`~dualhuman_builder.sync.mount_types.SuitChain`, prior :data:`CHAIN_PRIOR_DEG`); False
+    leaves the suit's limb errors to the mounts and the drift. ``mounts_from``: the
+    :class:`SyncResult` of the studio day's calibration take (named ``mounts_from_take`` in
     the report) whose mounts carry over (:func:`carry_mounts`); the report's ``mounts_from`` says
     which trackers kept theirs, and warns of those found strapped again or missing there. Its
     tracker lags carry over too, averaged with this take's own
     (:func:`~dualhuman_builder.sync.lag.with_carried_lag`; the report's ``lags`` keep both)."""
     from dualhuman_builder.sync.clock import fit_clock
     from dualhuman_builder.sync.lag import angular_speed, combine_lags, estimate_lag, linear_speed, with_carried_lag
-    from dualhuman_builder.sync.mount import SuitChain, calibrate_mounts
+    from dualhuman_builder.sync.mount import calibrate_mounts
+    from dualhuman_builder.sync.mount_types import SuitChain
 
     say = progress or (lambda _m: None)
     if not fps > 0:
@@ -431,13 +442,13 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
                 if not h_std <= HEADING_WARN_DEG and not a.mounts.carried.any():
                     report.setdefault("warnings", []).append(
                         f"{name}: heading in the tracker world known to {h_std:.1f} deg (1-sigma) only: the actor hardly "
-                        "turns, so it rests on where the trackers are strapped; record the session's calibration take (a bow, a "
+                        "turns, so it rests on where the trackers are strapped; record the studio day's calibration take (a bow, a "
                         "twist, a turn on the spot) and sync with --mounts-from it")
                 if np.isfinite(c_std) and c_std * 1000 > COMMON_OFFSET_WARN_MM and not a.mounts.carried.any():
                     report.setdefault("warnings", []).append(
                         f"{name}: the trackers' shared offset on their segments known to {round(c_std * 1000, 2):.1f} mm (1-sigma) "
                         "only, and the body's root with it: the actor turns too few segments to tell it from the suit's "
-                        "drift; record the session's calibration take and sync with --mounts-from it")
+                        "drift; record the studio day's calibration take and sync with --mounts-from it")
                 say(f"{name}: {K} trackers calibrated on their segments")
         out.append(a)
     return SyncResult(float(fps), times, out, report)

@@ -285,9 +285,8 @@ def test_combine_lags_drops_the_odd_one_and_weights_by_variance():
 
 
 def test_a_calibration_takes_lag_is_averaged_in_unless_the_latency_changed():
-    """The session's calibration take measured the trackers' lag behind the suits to 0.15 ms; a
-    short take's own 0.75 +/- 0.35 ms (push 1 of the accuracy benchmark: 1.2 ms off) is averaged
-    with it by inverse variance; a take without a lag of its own takes the carried one; one 4 ms
+    """The studio day's calibration take measured the trackers' lag behind the suits to 0.15 ms; a
+    short take's own 0.75 +/- 0.35 ms is averaged with it by inverse variance; a take without a lag of its own takes the carried one; one 4 ms
     away means the latency changed, and keeps its own."""
     carried = LagEstimate(2.1e6, 0.15e6, 0.99, 40, 24)
     own = LagEstimate(0.75e6, 0.35e6, 0.97, 20, 16)
@@ -505,7 +504,7 @@ def _carried(truth, K=6, rot_deg=0.2, offset_mm=2.0, seed=7, moved=None):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_still_actor_keeps_the_mounts_of_a_calibration_take(seed):
     """Standing still, an actor's heading and its trackers' shared offset rest on the sites' 2 cm
-    prior (~1 degree, ~14 mm): the mounts of a calibration take of the same session fix both. The
+    prior (~1 degree, ~14 mm): the mounts of the studio day's calibration take fix both. The
     carried rotations are kept as they are; the heading comes from them, to their spread over
     sqrt(6); the offsets stay within the calibration's millimetres."""
     inputs, truth = still_actor(seed)
@@ -679,9 +678,9 @@ def test_calibrate_mounts_errors():
 def test_the_heading_search_scales_orientation_residuals_per_axis():
     """The orientation residuals' robust scale is a per-axis sigma, as the positions' is (the
     heading search sums squared 3-D residuals over it): for normal residuals of 0.01 rad per axis
-    it reads ~0.01, not the 0.023 that 1.4826 x the median angle gives (which weighed the
+    it reads ~0.01, not the 0.023 that 1.4826 x the median angle gives (which would weigh the
     orientations 5.2x too little against the tracker constellation); no inliers: 1.0."""
-    from dualhuman_builder.sync.mount import _axis_sigma
+    from dualhuman_builder.sync.mount_constellation import axis_sigma
 
     rng = np.random.default_rng(3)
     rv = rng.normal(0.0, 0.01, (4000, 3, 3))
@@ -689,7 +688,7 @@ def test_the_heading_search_scales_orientation_residuals_per_axis():
     inl = np.ones((4000, 3), bool)
     inl[::10, 1] = False
     inl[:, 2] = False
-    sig = _axis_sigma(rv, inl)
+    sig = axis_sigma(rv, inl)
     np.testing.assert_allclose(sig[:2], 0.01, rtol=0.05)
     assert sig[2] == 1.0
     assert 1.4826 * np.median(np.linalg.norm(rv[:, 0], axis=-1)) > 2.2 * sig[0]  # the angle's scale
