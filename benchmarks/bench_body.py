@@ -1,17 +1,21 @@
 """Body-model throughput: bodies per second for forward and forward+backward, and peak memory.
 
-This is the ceiling the fitter is measured against (its frame pairs per second are reported as a
-ratio to these figures). Each configuration runs in a fresh child process so that peak memory
-is its own: on CPU the peak resident set size (VmHWM, reset after warm-up) and its increase over
-the resident size before the timed runs; on CUDA ``torch.cuda.max_memory_allocated``.
+This is the ceiling the fitter is measured against (``bench_fit.py`` reports its frame pairs per
+second as a ratio to anny's rate); it has no goal of its own. Each configuration runs in a fresh
+child process so that peak memory is its own: on CPU the peak resident set size (VmHWM, reset after
+warm-up) and its increase over the resident size before the timed runs; on CUDA
+``torch.cuda.max_memory_allocated``.
 
-    python benchmarks/bench_body.py                       # CPU, batches 1 16 64 256
-    python benchmarks/bench_body.py --device cuda         # a GPU, when present
-    python benchmarks/bench_body.py --device all --json benchmarks/results/body.json
+    .venv/bin/python benchmarks/bench_body.py                     # CPU, batches 1 16 64 256
+    .venv/bin/python benchmarks/bench_body.py --device all        # CPU and CUDA when present
+    .venv/bin/python benchmarks/bench_body.py --device cuda --batches 1,16,64,256,1024
 
 Timing: 2 warm-up runs, then the median of ``--repeats`` timed runs (float32, default anny rig
 and topology, random poses and shapes). Forward+backward differentiates the sum of squared
 vertices with respect to pose (rotation vectors), shape and translation.
+
+Writes ``benchmarks/results/body.json`` (``body_cuda.json`` when CUDA is among the devices;
+``--out`` elsewhere).
 """
 
 from __future__ import annotations
@@ -26,7 +30,10 @@ import sys
 import time
 from pathlib import Path
 
+from results_file import Table, write_results
+
 REPO = Path(__file__).resolve().parents[1]
+MODES = {"forward": "forward", "forward+backward": "forward_backward"}  # mode -> key in the results
 
 
 def _rss_kib(field: str) -> int:
@@ -88,7 +95,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cpu, cuda, or all (cpu and, when present, cuda)")
     ap.add_argument("--batches", default="1,16,64,256")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument("--out", "--json", type=Path, default=None,
+                    help="results file (default benchmarks/results/body.json, or body_cuda.json with CUDA)")
     ap.add_argument("--_worker", nargs=3, metavar=("DEVICE", "BATCH", "MODE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args._worker:
@@ -118,9 +126,26 @@ def main() -> None:
                 extra = f"{r['peak_increase_mb']:7.0f}" if "peak_increase_mb" in r else ""
                 print(f"{device:6s} {batch:5d} {mode:17s} {r['bodies_per_s']:10.1f} {1000 * r['median_s']:9.1f} "
                       f"{r['peak_mb']:9.0f} {extra}")  # fmt: skip
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2))
+    if not results:
+        raise SystemExit("no configuration ran: nothing to write")
+    figures: dict = {}
+    for r in results:
+        figures.setdefault(r["device"], {}).setdefault(str(r["batch"]), {})[MODES[r["mode"]]] = r
+    tables = []
+    for device in figures:
+        mem = "peak GPU MB (max_memory_allocated)" if device.startswith("cuda") else "peak RSS MB"
+        tables.append(Table(f"{device}: bodies per second (median of {args.repeats})",
+                            ["batch", "forward bodies/s", "forward+backward bodies/s", f"{mem}, forward",
+                             f"{mem}, forward+backward"],
+                            [[b, f"{device}.{b}.forward.bodies_per_s", f"{device}.{b}.forward_backward.bodies_per_s",
+                              f"{device}.{b}.forward.peak_mb", f"{device}.{b}.forward_backward.peak_mb"]
+                             for b in figures[device]]))  # fmt: skip
+    name = "body_cuda" if "cuda" in devices else "body"
+    path = write_results(name, figures, params={"devices": devices, "batches": args.batches, "repeats": args.repeats,
+                                                "torch_threads": torch.get_num_threads()},
+                         tables=tables, out=args.out,
+                         notes="The ceiling for bench_fit's fit/anny ratio; no goal of its own.")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -16,6 +16,11 @@ CAN streams must show no packet-counter gap after their first recorded sample.
 
     .venv/bin/python benchmarks/bench_capture.py                      # 60 s at 1x, then multiples
     .venv/bin/python benchmarks/bench_capture.py --seconds 10 --multiples 1,10,20,40
+
+Goals: lossless at 1x, and lossless up to 20x real time (the highest multiple tried without loss).
+Replay to the pipeline is timed against the take's own length (no goal). Writes
+``benchmarks/results/capture.json`` (``--out`` elsewhere); the generated scenes are cached in
+``benchmarks/cache/``.
 """
 
 from __future__ import annotations
@@ -34,7 +39,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-RESULTS = ROOT / "benchmarks" / "results"
+from results_file import Goal, Table, write_results  # noqa: E402
+
+CACHE = ROOT / "benchmarks" / "cache"
+#: The highest multiple of real time the studio must record without loss.
+GOAL_MULTIPLE = 20.0
+#: The shortest scene generated (s): shorter takes are played from a scene this long.
+MIN_SCENE_S = 4.0
 
 
 def cpu_s() -> float:
@@ -43,14 +54,14 @@ def cpu_s() -> float:
 
 
 def scene_file(seconds: float) -> Path:
-    """A handshake padded to ``seconds`` (cached under benchmarks/results/)."""
+    """A handshake padded to ``seconds`` (cached under benchmarks/cache/)."""
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"handshake_{seconds:g}s.npz"
+    CACHE.mkdir(parents=True, exist_ok=True)
+    path = CACHE / f"handshake_{seconds:g}s.npz"
     if not path.exists():
         print(f"generating a {seconds:g} s handshake scene (cached in {path}) ...", flush=True)
-        make_scene(SceneParams(type="handshake", seed=3, fps=15, duration=max(seconds, 4.0))).save(path)
+        make_scene(SceneParams(type="handshake", seed=3, fps=15, duration=max(seconds, MIN_SCENE_S))).save(path)
     return path
 
 
@@ -178,14 +189,17 @@ def main() -> None:
     ap.add_argument("--fast-seconds", type=float, default=10.0, help="take length for multiples > 1 (scene time)")
     ap.add_argument("--runs", type=int, default=3, help="replay timing runs (median)")
     ap.add_argument("--skip-ingest", action="store_true")
+    ap.add_argument("--out", type=Path, default=None, help="results file (default benchmarks/results/capture.json)")
     args = ap.parse_args()
     print(f"machine: {os.cpu_count()} CPUs, python {sys.version.split()[0]}")
+    ingests = []
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
         if not args.skip_ingest:
             for m in [float(x) for x in args.multiples.split(",")]:
                 scene = scene_file(args.seconds if m == 1 else args.fast_seconds)
                 r = ingest(scene, m, workdir)
+                ingests.append(r)
                 loss = ", ".join(f"{k} {v}" for k, v in r["loss"].items())
                 print(f"ingest {m:g}x: {'LOSSLESS' if r['lossless'] else 'LOSS'} ({loss}); wall {r['wall_s']:.1f} s, "
                       f"recorder CPU {r['cpu_s']:.1f} s = {r['cpu_pct']:.0f} % of one core; "
@@ -194,6 +208,38 @@ def main() -> None:
         r = replay_throughput(scene_file(args.fast_seconds), workdir, args.runs)
         print(f"replay of {r['recorded_s']:.1f} s ({r['samples']} samples): columns {r['columns_s']:.2f} s = "
               f"{r['columns_x']:.0f}x real time; sample objects {r['objects_s']:.2f} s = {r['objects_x']:.0f}x")  # fmt: skip
+    lossless = [x["multiple"] for x in ingests if x["lossless"]]
+    at_1x = [x["lossless"] for x in ingests if x["multiple"] == 1]
+    highest = None  # the highest multiple tried up to which every multiple tried was lossless
+    if ingests:
+        highest = 0.0
+        for x in sorted(ingests, key=lambda x: x["multiple"]):
+            if not x["lossless"]:
+                break
+            highest = x["multiple"]
+    figures = {
+        "ingest": [{**x, "take_s": max(args.seconds if x["multiple"] == 1 else args.fast_seconds, MIN_SCENE_S), "mb": x["bytes"] / 1e6}
+                   for x in ingests],
+        "lossless_at_1x": at_1x[0] if at_1x else None,
+        "highest_lossless_multiple": highest,
+        "lossless_multiples": lossless,
+        "replay": r,
+    }  # fmt: skip
+    tables = [Table("ingest on loopback (players, recorder and its decoding process share this machine's cores)",
+                    ["multiple of real time", "take s", "lossless", "wall s", "recorder CPU % of one core", "MB written"],
+                    [[f"{x['multiple']:g}x", f"ingest.{k}.take_s", f"ingest.{k}.lossless", f"ingest.{k}.wall_s",
+                      f"ingest.{k}.cpu_pct", f"ingest.{k}.mb"] for k, x in enumerate(ingests)]),
+              Table(f"replay of the take to the pipeline (median of {args.runs})", ["replay", "seconds", "x real time"],
+                    [["columns (`read_columns`)", "replay.columns_s", "replay.columns_x"],
+                     ["sample objects (`replay_samples`)", "replay.objects_s", "replay.objects_x"]])]  # fmt: skip
+    goals = [Goal("lossless_at_1x", ">=", 1, label="lossless at 1x real time"),
+             Goal("highest_lossless_multiple", ">=", GOAL_MULTIPLE, "x",
+                  label="highest multiple of real time up to which every multiple tried was lossless")]  # fmt: skip
+    path = write_results("capture", figures, params={k: v for k, v in vars(args).items() if k != "out"},
+                         goals=goals, tables=tables, out=args.out,
+                         notes="Loss counts every suit frame and tracker sample the devices sent, kernel drops, and "
+                               "counter gaps of the MVN, Xbus and CAN streams.")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Collision machinery: time per frame pair and depth accuracy of each way to compute penetration.
+"""Collision machinery: time per frame pair and depth accuracy of the fit's collision term, against
+the other ways to compute penetration, in the same run.
 
 Compares, through :class:`~dualhuman_builder.geometry.collision.CollisionTerm` (same broad phase, same
 query vertices, same outputs):
@@ -21,13 +22,15 @@ Times are the median of ``--repeats`` runs of ``penetration()`` (both directions
 after one warm-up; ``call+bwd`` is the loss with its backward pass. Also prints the mesh facts
 that decide which sign to trust.
 
-    python benchmarks/bench_collision.py [--repeats 7] [--json benchmarks/results/collision.json]
+    .venv/bin/python benchmarks/bench_collision.py [--repeats 7] [--quick]
+
+Writes ``benchmarks/results/collision.json`` (``--out`` elsewhere). No goals: the figures back the
+choice of method (decision record 0010).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import statistics
@@ -39,6 +42,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from results_file import Table, write_results  # noqa: E402
 
 METHODS = [
     ("warp, band 1 cm, flood if >1500 far (default)", {}),
@@ -156,7 +161,8 @@ def time_it(fn, repeats):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--out", "--json", type=Path, default=None,
+                    help="results file (default benchmarks/results/collision.json)")
     ap.add_argument("--quick", action="store_true", help="only the default, igl and grid methods")
     ap.add_argument("--torch-threads", type=int, default=1,
                     help="torch intra-op threads (default 1: on a loaded 2-core machine two OpenMP threads "
@@ -204,6 +210,7 @@ def main(argv=None):
     # the default with gradients, and batched frames
     ct = CollisionTerm(model.faces)
     extra = {}
+    default = {"call_backward_ms": {}, "batch16_ms_per_frame": {}}
     for n in ("hug", "back 3cm", "thin"):
         a, b = scenes[n]
 
@@ -212,18 +219,35 @@ def main(argv=None):
             vb = b.clone().requires_grad_(True)
             ct(va, vb).loss.sum().backward()
 
-        extra[f"call+bwd {n} ms"] = time_it(call_bwd, args.repeats)
+        extra[f"call+bwd {n} ms"] = default["call_backward_ms"][n] = time_it(call_bwd, args.repeats)
     for n in ("back 3cm", "far"):
         a, b = scenes[n]
         A, Bv = a.expand(16, -1, -1).contiguous(), b.expand(16, -1, -1).contiguous()
-        extra[f"batch of 16 '{n}' frames, ms per frame"] = time_it(lambda A=A, Bv=Bv: ct.penetration(A, Bv), 3) / 16
+        extra[f"batch of 16 '{n}' frames, ms per frame"] = default["batch16_ms_per_frame"][n] = (
+            time_it(lambda A=A, Bv=Bv: ct.penetration(A, Bv), 3) / 16)
     print("default method:")
     for k, v in extra.items():
         print(f"  {k}: {v:.1f}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"facts": facts, "rows": rows, "default": extra,
-                                         "reference_deepest_mm": {k: r[2] * 1000 for k, r in refs.items()}}, indent=1))  # fmt: skip
+    figures = {"facts": facts, "reference_deepest_mm": {k: r[2] * 1000 for k, r in refs.items()}, "methods": rows,
+               "default": default, "torch_threads": torch.get_num_threads()}  # fmt: skip
+    tables = [Table(f"ms per frame pair, both directions, no gradient (median of {args.repeats}); errors against "
+                    "`igl.signed_distance` with the winding-number sign",
+                    ["method"] + [f"{n} ms" for n in names] + ["max error mm", "inside vertices missed", "false inside"],
+                    [[r["method"]] + [f"methods.{k}.ms.{n}" for n in names]
+                     + [f"methods.{k}.max_err_mm", f"methods.{k}.missed", f"methods.{k}.false"]
+                     for k, r in enumerate(rows)]),
+              Table("the default method", ["figure", "ms"],
+                    [[f"loss and backward, {n}", f"default.call_backward_ms.{n}"] for n in default["call_backward_ms"]]
+                    + [[f"batch of 16 '{n}' frames, per frame", f"default.batch16_ms_per_frame.{n}"]
+                       for n in default["batch16_ms_per_frame"]])]  # fmt: skip
+    path = write_results("collision", figures, params={"repeats": args.repeats, "quick": args.quick,
+                                                       "torch_threads": args.torch_threads},
+                         tables=tables, out=args.out,
+                         notes="Scenes: anny's average body in its rest pose, the second body turned 180° about +Y: "
+                               "a hug 0.15 m apart, back to back 3 cm and 3 mm deep, and 2 m apart (far). The "
+                               "reference depths: " + ", ".join(f"{k} {r[2] * 1000:.1f} mm" for k, r in refs.items())
+                               + ".")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -22,18 +22,20 @@ on the scene's contact phase (its busiest frames), vertices precomputed:
 
 Also: ours over the whole scene, F1 against the scene's own contacts, and the time to compute
 the vertices (``BodyTrack.vertices``), which the stage pays on top. Prints a table with ratios
-to ours and writes ``benchmarks/results/contacts.json``.
+to ours.
+
+Goals: 50 frame pairs/s on the hug's contact window (``GOAL_HUG_PAIRS_PER_S``); labels identical
+to the brute force, and distances within 1e-9 m of it below the threshold and 1e-7 m above it, on
+every scene type measured. Writes ``benchmarks/results/contacts.json`` (``--out`` elsewhere).
 
     .venv/bin/python benchmarks/bench_contacts.py [--fps 15] [--frames 30] [--repeats 5] [--tile 4] [--workers 2]
-        [--scene-cache DIR]
+        [--scene-cache benchmarks/cache]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
 import sys
 import threading
@@ -44,6 +46,14 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from results_file import Goal, Table, write_results  # noqa: E402
+
+#: Frame pairs per second the contacts stage must reach on a hug's contact phase, in one process.
+GOAL_HUG_PAIRS_PER_S = 50.0
+#: How far our distances may lie from the brute-force libigl query's, below and above the threshold (m).
+GOAL_DISTANCE_BELOW_M, GOAL_DISTANCE_ABOVE_M = 1e-9, 1e-7
+
 
 def load_scene(kind: str, fps: float, cache: Path | None):
     from dualhuman_builder.sim.scenes import Scene, SceneParams, make_scene
@@ -131,6 +141,7 @@ def bench_scene(kind, sc, topo, args) -> dict:
             deep = np.isneginf(res.distances[i, t].astype(np.float32))
             same &= bool(np.array_equal(lab[~deep], res.labels[i, t][~deep]))
     out["brute_fps"] = n / (time.perf_counter() - t0)
+    out["ours_over_brute"] = ours / out["brute_fps"]
     out["labels_identical_to_brute_force"] = same
     # distances in float64 (contact_frame), against the brute force: libigl's own answers below the
     # threshold, pseudonormals on the BVH's face above it
@@ -221,8 +232,10 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, default=2, help="row (d): worker processes")
     ap.add_argument("--trimesh-frames", type=int, default=2)
     ap.add_argument("--trimesh-points", type=int, default=2000)
-    ap.add_argument("--scene-cache", type=Path, default=None, help="keep generated scenes here (a hug takes ~80 s)")
-    ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "contacts.json")
+    ap.add_argument("--scene-cache", type=Path, default=None,
+                    help="keep generated scenes here, e.g. benchmarks/cache (a hug takes ~80 s)")
+    ap.add_argument("--out", "--json", type=Path, default=None,
+                    help="results file (default benchmarks/results/contacts.json)")
     args = ap.parse_args(argv)
 
     import torch
@@ -271,12 +284,37 @@ def main(argv=None) -> None:
               f"{r['ours_queried_vertices_per_frame']:.0f} vertices, {r['ours_queried_faces_per_frame']:.0f} faces "
               f"to igl, {r['ours_pseudonormal_vertices_per_frame']:.0f} vertices in float64 on the BVH's face "
               f"(both ways); vertices from the body model: {1000 * r['vertices_s_per_frame_pair']:.1f} ms/frame pair")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        meta = {"cpus": os.cpu_count(), "machine": platform.machine(), "load_before": load0,
-                "load_after": os.getloadavg()[0], "igl_holds_gil": gil, "args": {k: str(v) for k, v in vars(args).items()}}  # fmt: skip
-        args.json.write_text(json.dumps({"meta": meta, "scenes": results}, indent=1, default=float))
-        print(f"wrote {args.json}")
+    figures = {"scenes": results, "igl_holds_gil": gil, "load": {"before": load0, "after": os.getloadavg()[0]}}
+    kinds = list(results)
+    methods = [("ours (warp BVH + libigl on the possible contacts), one process", "ours_fps"),
+               ("(a) brute-force `igl.signed_distance`, all vertices, same band", "brute_fps"),
+               ("(b) `trimesh.proximity.signed_distance`", "trimesh_fps"),
+               ("(c) warp `PairDistance` (float32; the scene generator's)", "warp_fps"),
+               ("ours / brute force", "ours_over_brute"),
+               ("ours, whole scene (far frames skipped), one process", "whole_scene.fps"),
+               (f"(d) ours, whole scene x{args.tile}, one process", "tiled_workers1_fps"),
+               (f"(d) the same, {args.workers} worker processes", f"tiled_workers{args.workers}_fps"),
+               ("F1 of the whole scene against its own contacts", "whole_scene.f1"),
+               ("labels identical to the brute force", "labels_identical_to_brute_force"),
+               ("max distance error below the threshold, m", "max_distance_error_below_threshold_m"),
+               ("max distance error above the threshold, m", "max_distance_error_above_threshold_m")]  # fmt: skip
+    table = Table(f"frame pairs/s on a {args.frames}-frame window on the contact phase, {args.fps:g} fps (median of "
+                  f"{args.repeats} for ours)", ["method"] + kinds,
+                  [[label] + [f"scenes.{k}.{key}" for k in kinds] for label, key in methods])  # fmt: skip
+    goals = [Goal("scenes.hug.ours_fps", ">=", GOAL_HUG_PAIRS_PER_S, "frame pairs/s",
+                  label="hug, contact window, one process")] if "hug" in results else []  # fmt: skip
+    for k in kinds:
+        goals += [Goal(f"scenes.{k}.labels_identical_to_brute_force", ">=", 1, label=f"{k}: labels identical to the brute force"),
+                  Goal(f"scenes.{k}.max_distance_error_below_threshold_m", "<=", GOAL_DISTANCE_BELOW_M, "m",
+                       label=f"{k}: distances against the brute force, below the threshold"),
+                  Goal(f"scenes.{k}.max_distance_error_above_threshold_m", "<=", GOAL_DISTANCE_ABOVE_M, "m",
+                       label=f"{k}: distances against the brute force, above the threshold")]  # fmt: skip
+    params = {k: v for k, v in vars(args).items() if k not in ("out", "scene_cache")}
+    path = write_results("contacts", figures, params=params, goals=goals, tables=[table], out=args.out,
+                         notes=f"Band {1000 * args.band:g} mm, threshold {1000 * args.threshold:g} mm; libigl holds the "
+                               f"GIL: {gil}. The ratio to the brute force carries across days; the rates drift with "
+                               "the machine.")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

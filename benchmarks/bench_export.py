@@ -1,7 +1,8 @@
-"""Export stage and training loaders: sequences/min of ``export_dataset``, windows/s of the loaders.
+"""Export stage and training loaders: sequences/min of ``export_dataset``, windows/s of the loaders
+against a bare ``numpy.load`` loop in the same run.
 
 Data: ground-truth scenes (``--types``, seed 0, ``--fps``, ``--scene-seconds`` long; cached in
-``--scene-cache``), their contacts from :func:`~dualhuman_builder.evaluation.contacts.contacts_for_scene`
+``--scene-cache``, default ``benchmarks/cache/``), their contacts from :func:`~dualhuman_builder.evaluation.contacts.contacts_for_scene`
 (once per scene), cut into clips of ``--seconds`` at evenly spread start frames (clip ``k`` from
 scene ``k mod types``); each clip's contacts are the scene's, sliced (events clipped to the clip).
 Every timed run gets freshly built tracks, so the export pays the body model for the joints as
@@ -29,7 +30,8 @@ it would on a freshly loaded sequence (tracks cache them).
    then survives epochs; ``set_epoch`` reaches it through shared memory).
 
 ``--profile`` also prints the top functions (cProfile, cumulative) of one export (a) run and one
-shuffled 0-worker MotionWindows epoch. Writes ``benchmarks/results/export.json``.
+shuffled 0-worker MotionWindows epoch. Writes ``benchmarks/results/export.json`` (``--out``
+elsewhere). No goals: the figures back the export's and loaders' design (decision record 0024).
 
     .venv/bin/python benchmarks/bench_export.py [--sequences 8] [--seconds 3] [--repeats 3]
         [--loader-sequences 48] [--loader-seconds 8] [--epochs 4] [--scene-cache DIR] [--profile]
@@ -41,7 +43,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -53,6 +54,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from results_file import Table, write_results  # noqa: E402
 
 MB = 1e6
 
@@ -282,7 +285,7 @@ def bench_loaders(folder: Path, shard_dir: Path, args) -> dict:
     out: dict = {"train_sequences": len(ids), "window": L, "stride": stride, "batch": B, "shards": len(shards),
                  "shard_mb": sum(p.stat().st_size for p in shards) / MB, "write_shards_s": shard_s}  # fmt: skip
     rows: dict = {}
-    rows["baseline: np.load + slice, no torch"] = run_epochs(lambda: baseline_epoch(folder, ids, L, stride, B), args.epochs)
+    rows["baseline"] = run_epochs(lambda: baseline_epoch(folder, ids, L, stride, B), args.epochs)
 
     def map_style(source, workers: int, shuffle: bool, persistent: bool = False):
         ds = MotionWindows(source, window=L, stride=stride, split="train", normalize=args.normalize,
@@ -298,19 +301,34 @@ def bench_loaders(folder: Path, shard_dir: Path, args) -> dict:
         ds = ShardWindows(shards, window=L, stride=stride, normalize=args.normalize, mirror_p=args.mirror_p)
         return run_epochs(lambda: DataLoader(ds, batch_size=B, num_workers=workers), args.epochs, ds.set_epoch)
 
-    rows["MotionWindows folder, 0 workers, in order"] = map_style(folder, 0, False)
-    rows["MotionWindows folder, 0 workers, shuffled"] = map_style(folder, 0, True)
-    rows["MotionWindows folder, 2 workers, shuffled"] = map_style(folder, 2, True)
-    rows["  (experiment) same, persistent_workers=True"] = map_style(folder, 2, True, persistent=True)
-    rows["MotionWindows shards (in memory), 0 workers, shuffled"] = map_style(shards, 0, True)
-    rows["MotionWindows shards (in memory), 2 workers, shuffled"] = map_style(shards, 2, True)
-    rows["ShardWindows, 0 workers"] = streaming(0)
-    rows["ShardWindows, 2 workers"] = streaming(2)
-    base = rows["baseline: np.load + slice, no torch"]["wps"]
-    for r in rows.values():
+    rows["folder_0w_ordered"] = map_style(folder, 0, False)
+    rows["folder_0w_shuffled"] = map_style(folder, 0, True)
+    rows["folder_2w_shuffled"] = map_style(folder, 2, True)
+    rows["folder_2w_persistent"] = map_style(folder, 2, True, persistent=True)
+    rows["shards_in_memory_0w"] = map_style(shards, 0, True)
+    rows["shards_in_memory_2w"] = map_style(shards, 2, True)
+    rows["shard_windows_0w"] = streaming(0)
+    rows["shard_windows_2w"] = streaming(2)
+    base = rows["baseline"]["wps"]
+    for key, r in rows.items():
         r["ratio"] = r["wps"] / base
+        r["label"] = LOADER_ROWS[key]
     out["rows"] = rows
     return out
+
+
+#: The loader rows: key in the results -> label.
+LOADER_ROWS = {
+    "baseline": "baseline: np.load + slice, no torch",
+    "folder_0w_ordered": "MotionWindows folder, 0 workers, in order",
+    "folder_0w_shuffled": "MotionWindows folder, 0 workers, shuffled",
+    "folder_2w_shuffled": "MotionWindows folder, 2 workers, shuffled",
+    "folder_2w_persistent": "  (experiment) same, persistent_workers=True",
+    "shards_in_memory_0w": "MotionWindows shards (in memory), 0 workers, shuffled",
+    "shards_in_memory_2w": "MotionWindows shards (in memory), 2 workers, shuffled",
+    "shard_windows_0w": "ShardWindows, 0 workers",
+    "shard_windows_2w": "ShardWindows, 2 workers",
+}
 
 
 def profile_top(fn, top: int) -> str:
@@ -367,12 +385,16 @@ def main(argv=None) -> None:
     ap.add_argument("--normalize", action="store_true")
     ap.add_argument("--mirror-p", type=float, default=0.0)
     ap.add_argument("--profile", action="store_true")
-    ap.add_argument("--workdir", type=Path, default=None, help="where the exports go (default: the temp folder)")
-    ap.add_argument("--scene-cache", type=Path, default=Path(tempfile.gettempdir()) / "bench_scenes",
-                    help="keep generated scenes here ('' disables)")  # fmt: skip
-    ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "export.json")
+    ap.add_argument("--workdir", type=Path, default=None,
+                    help="where the exports go (default: a temporary folder in the scene cache, else the temp folder)")
+    ap.add_argument("--scene-cache", type=Path, default=REPO / "benchmarks" / "cache",
+                    help="keep generated scenes (and the render folders) here ('' disables)")  # fmt: skip
+    ap.add_argument("--out", "--json", type=Path, default=None,
+                    help="results file (default benchmarks/results/export.json)")
     args = ap.parse_args(argv)
     cache = args.scene_cache if str(args.scene_cache) not in ("", ".") else None
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
 
     from dualhuman_builder.evaluation.contacts import contacts_for_scene
     from dualhuman_builder.export.layout import export_dataset
@@ -391,7 +413,8 @@ def main(argv=None) -> None:
     clips = Clips(scenes, args.sequences, frames, "")
     result: dict = {"scenes": prep}
 
-    workdir = Path(tempfile.mkdtemp(prefix="bench-export-", dir=args.workdir))
+    # beside the cached render folders, so that (b) hard-links them
+    workdir = Path(tempfile.mkdtemp(prefix="bench-export-", dir=args.workdir or cache))
     other = None
     try:
         if args.other_fs and str(args.other_fs) not in ("", ".") and args.other_fs.is_dir():
@@ -400,7 +423,8 @@ def main(argv=None) -> None:
         exports: dict = {}
         print(f"export: {args.sequences} sequences x {frames} frames at {args.fps:g} fps, median of {args.repeats} "
               f"runs, into {workdir} ({fs_type(workdir)}) ...", flush=True)  # fmt: skip
-        exports["(a) no renders"], out_a = bench_export("a", clips.items, workdir, args.repeats, args.sequences)
+        exports["a"], _ = bench_export("a", clips.items, workdir, args.repeats, args.sequences)
+        exports["a"]["label"] = "(a) no renders"
         if args.profile:
             print(profile_top(lambda: export_dataset(clips.items(), workdir / "profile-a"), 25))
         if not args.no_renders:
@@ -409,16 +433,16 @@ def main(argv=None) -> None:
             result["renders"] = {**render_info, "views": args.views, "size": args.size, "spp": args.spp,
                                  "every": args.every, "folder": str(render_root)}  # fmt: skip
             linked = os.stat(render_root).st_dev == os.stat(workdir).st_dev
-            exports[f"(b) renders, {'hard-linked' if linked else 'copied'}"], _ = bench_export(
-                "b", lambda: clips.items(dirs), workdir, args.repeats, args.sequences)
+            exports["b"], _ = bench_export("b", lambda: clips.items(dirs), workdir, args.repeats, args.sequences)
+            exports["b"]["label"] = f"(b) renders, {'hard-linked' if linked else 'copied'} (same filesystem)"
             if other is not None:
                 far = {}
                 for sid, d in dirs.items():
                     far[sid] = other / "renders" / d.name
                     if not far[sid].exists():
                         shutil.copytree(d, far[sid])
-                exports[f"(c) renders, copied from {fs_type(other)}"], _ = bench_export(
-                    "c", lambda: clips.items(far), workdir, args.repeats, args.sequences)
+                exports["c"], _ = bench_export("c", lambda: clips.items(far), workdir, args.repeats, args.sequences)
+                exports["c"]["label"] = f"(c) renders, copied from {fs_type(other)}"
         for label in ("b", "c"):
             for p in workdir.glob(f"{label}-*"):
                 shutil.rmtree(p)
@@ -463,10 +487,10 @@ def main(argv=None) -> None:
            f"{'CPU s':>7s}{'seq/min':>9s}{'size MB':>9s}{'MB/s':>8s}{'written MB':>12s}"
     print(head)
     print("-" * len(head))
-    for label, e in result["export"].items():
+    for e in result["export"].values():
         for kind, name in (("fresh", "fresh folder"), ("rerun", "re-run, same")):
             x = e[kind]
-            print(f"{label if kind == 'fresh' else '':38s}{name:>14s}{x['seconds']:8.2f}{x['cpu_s']:7.2f}{x['sequences_per_min']:9.1f}"
+            print(f"{e['label'] if kind == 'fresh' else '':38s}{name:>14s}{x['seconds']:8.2f}{x['cpu_s']:7.2f}{x['sequences_per_min']:9.1f}"
                   f"{e['export_mb']:9.2f}{x['mb_per_s']:8.1f}{x['written_mb']:12.2f}")  # fmt: skip
     lo = result["loaders"]
     print(f"\nloaders: {lo['train_sequences']} train sequences, window {lo['window']}, stride {lo['stride']}, "
@@ -475,15 +499,23 @@ def main(argv=None) -> None:
     head = f"{'loader (shuffled: DataLoader shuffle=True)':56s}{'windows':>8s}{'win/s':>10s}{'x base':>8s}{'1st epoch':>11s}{'1st batch s':>12s}"
     print(head)
     print("-" * len(head))
-    for label, r in lo["rows"].items():
+    for r in lo["rows"].values():
         fb = "" if r["first_batch_s"] is None else f"{r['first_batch_s']:.3f}"
-        print(f"{label:56s}{r['windows']:8d}{r['wps']:10.0f}{r['ratio']:8.3f}{r['first_epoch_wps']:11.0f}{fb:>12s}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        meta = {"cpus": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version(),
-                "load_before": load0, "load_after": load1, "args": {k: str(v) for k, v in vars(args).items()}}  # fmt: skip
-        args.json.write_text(json.dumps({"meta": meta, **result}, indent=1, default=float))
-        print(f"wrote {args.json}")
+        print(f"{r['label']:56s}{r['windows']:8d}{r['wps']:10.0f}{r['ratio']:8.3f}{r['first_epoch_wps']:11.0f}{fb:>12s}")
+    result["load"] = {"before": load0, "after": load1, "exports_on": fs_type(workdir)}
+    tables = [Table(f"export of {args.sequences} sequences x {frames} frames at {args.fps:g} fps (median of "
+                    f"{args.repeats})", ["export", "sequences/min", "re-run, nothing changed: sequences/min",
+                                         "size MB", "written MB"],
+                    [[e["label"], f"export.{k}.fresh.sequences_per_min", f"export.{k}.rerun.sequences_per_min",
+                      f"export.{k}.export_mb", f"export.{k}.fresh.written_mb"] for k, e in result["export"].items()]),
+              Table(f"loaders over {lo['train_sequences']} train sequences, window {lo['window']}, stride {lo['stride']}, "
+                    f"batch {lo['batch']} (epochs after the first, median)",
+                    ["loader", "windows/s", "x bare numpy.load loop", "first epoch windows/s"],
+                    [[r["label"].strip(), f"loaders.rows.{k}.wps", f"loaders.rows.{k}.ratio",
+                      f"loaders.rows.{k}.first_epoch_wps"] for k, r in lo["rows"].items()])]  # fmt: skip
+    params = {k: v for k, v in vars(args).items() if k not in ("out", "workdir", "scene_cache", "profile")}
+    path = write_results("export", result, params=params, tables=tables, out=args.out)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

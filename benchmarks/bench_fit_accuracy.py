@@ -7,7 +7,8 @@ transports -> MCAP -> replay -> sync -> fuse -> fit, against the scene's ground 
 
 Per take it fits twice: with trackers and the collision term (the product; the fitter also measures
 the penetration its windows leave before the collision passes: the "off" columns), and without
-trackers or collision term (what fusion buys), and prints one row per take plus the mean and worst over takes, against the issue's goals. Takes are
+trackers or collision term (what fusion buys), and prints one row per take plus the mean and worst
+over takes, against the goals (``GOALS``: each held by the worst take). Takes are
 recorded in real time (``--speed``), so the figures include real transport timing; two recordings
 of one scene differ through that timing, so ``--keep DIR`` keeps the recordings (``DIR/<type>-<seed>/``)
 and a later run with the same ``DIR`` scores the same ones again (to compare code, not recordings).
@@ -15,8 +16,9 @@ and a later run with the same ``DIR`` scores the same ones again (to compare cod
 its held contacts stalled (located at every evaluation from then on,
 :class:`~dualhuman_builder.fit.fitter.FitConfig` ``collision_hold_contacts``), ``exact_windows`` how
 many windows they left unsettled all the same (fitted again exactly). ``--compare-exact`` fits each take a third time with the contacts
-located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plus the total ratio.
-Writes ``benchmarks/results/fit_accuracy.json``.
+located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plus the total ratio
+(both ways in the same run). Writes ``benchmarks/results/fit_accuracy.json`` (``--out`` elsewhere);
+``docs/accuracy.md`` is generated from it.
 
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --compare-exact
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --calibration
@@ -27,13 +29,12 @@ it (printing its own mounts' errors against the simulated ones), and carries its
 (:func:`~dualhuman_builder.sync.timeline.synchronise` ``mounts_from``; ``dualhuman sync
 --mounts-from`` in a workspace). The mount columns are then the calibration take's mounts, and the
 clock column the take's own lag averaged with the calibration's. Writes
-``fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
+``benchmarks/results/fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -44,12 +45,25 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-#: The issue's goals: (column, bound, "<=").
+from results_file import Goal, Table, write_results  # noqa: E402
+
+#: The goals, each an upper bound on a column's worst take.
 GOALS = {"mpjpe_mm": 15.0, "root_mm": 10.0, "max_penetration_mm": 5.0, "penetrating_share_pct": 0.1,
          "clock_offset_error_ms": 1.0, "mount_rotation_error_deg": 1.0, "foot_slide_mm": 5.0}  # fmt: skip
 COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetration_mm", "max_penetration_off_mm",
            "penetrating_share_pct", "penetrating_share_off_pct", "clock_offset_error_ms", "mount_rotation_error_deg",
            "mount_offset_error_mm", "foot_slide_mm", "fit_pairs_per_s")  # fmt: skip
+LABELS = {"mpjpe_mm": ("MPJPE", "mm"), "root_mm": ("root error", "mm"), "mpjpe_free_mm": ("MPJPE without trackers", "mm"),
+          "root_free_mm": ("root error without trackers", "mm"), "max_penetration_mm": ("max penetration", "mm"),
+          "max_penetration_off_mm": ("max penetration before the collision passes", "mm"),
+          "penetrating_share_pct": ("share of vertices penetrating", "%"),
+          "penetrating_share_off_pct": ("share penetrating before the collision passes", "%"),
+          "clock_offset_error_ms": ("clock offset error", "ms"), "mount_rotation_error_deg": ("mount rotation error", "°"),
+          "mount_offset_error_mm": ("mount offset error", "mm"), "foot_slide_mm": ("foot slide", "mm"),
+          "fit_pairs_per_s": ("whole path, frame pairs/s", ""), "fit_s": ("fit stage seconds", "s"),
+          "exact_frames": ("frames located exactly after a stall", ""),
+          "exact_windows": ("windows fitted again exactly", ""), "fit_s_exact": ("fit seconds, exact contacts", "s"),
+          "mpjpe_exact_mm": ("MPJPE, exact contacts", "mm")}  # fmt: skip
 
 
 def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model):
@@ -111,7 +125,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=15.0, help="scene and fit frame rate")
     ap.add_argument("--speed", type=float, default=1.0, help="recording speed (multiple of real time)")
     ap.add_argument("--out", type=Path, default=None,
-                    help="where to write the figures (default results/fit_accuracy.json, or fit_accuracy_calibrated.json)")
+                    help="results file (default benchmarks/results/fit_accuracy.json, or fit_accuracy_calibrated.json)")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
@@ -119,9 +133,7 @@ def main() -> None:
     ap.add_argument("--calibration", action="store_true",
                     help="carry the tracker mounts and lags of a calibration take per device seed into each take's sync")
     args = ap.parse_args()
-    if args.out is None:
-        name = "fit_accuracy_calibrated.json" if args.calibration else "fit_accuracy.json"
-        args.out = Path(__file__).parent / "results" / name
+    name = "fit_accuracy_calibrated" if args.calibration else "fit_accuracy"
     cols = COLUMNS + ("fit_s", "exact_frames", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model
@@ -131,7 +143,7 @@ def main() -> None:
     print(f"{'take':<16}" + "".join(f"{c[:14]:>15}" for c in cols), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) if args.keep is None else args.keep
-        calibrations = {}
+        calibrations, calibration_takes = {}, {}
         if args.calibration:
             from dualhuman_builder.capture.log.reader import read_columns
             from dualhuman_builder.sync.timeline import synchronise
@@ -144,6 +156,9 @@ def main() -> None:
                 calibrations[s] = synchronise(read_columns(take), fps=args.fps)
                 e = mount_errors(calibrations[s], simulate_studio(scene.sequence, seed=s))
                 t = e["translation_mm"]
+                calibration_takes[str(s)] = {"rotation_deg_worst": float(e["rotation_deg"].max()),
+                                             "offset_mm_mean": float(t.mean()), "offset_mm_rms": float(np.sqrt(np.mean(t**2))),
+                                             "offset_mm_worst": float(t.max())}  # fmt: skip
                 print(f"calibration-{s}: mounts within {e['rotation_deg'].max():.2f} deg; offsets {t.mean():.1f} mm mean, "
                       f"{np.sqrt(np.mean(t**2)):.1f} RMS, {t.max():.1f} worst", flush=True)  # fmt: skip
         for t in args.types:
@@ -157,17 +172,29 @@ def main() -> None:
         summary[c] = {"mean": statistics.fmean(vals), "worst": (min if c == "fit_pairs_per_s" else max)(vals)} if vals else {}
     print(f"{'mean':<16}" + "".join(f"{summary[c].get('mean', float('nan')):15.3f}" for c in cols))
     print(f"{'worst':<16}" + "".join(f"{summary[c].get('worst', float('nan')):15.3f}" for c in cols))
+    totals = {"fit_s": sum(r["fit_s"] for r in rows)}
     if args.compare_exact:
-        held, exact = sum(r["fit_s"] for r in rows), sum(r["fit_s_exact"] for r in rows)
+        held, exact = totals["fit_s"], sum(r["fit_s_exact"] for r in rows)
+        totals.update({"fit_s_exact": exact, "exact_over_held": exact / held})
         print(f"fit seconds over all takes: {held:.1f} held contacts, {exact:.1f} exact: {exact / held:.2f}x")
     print("\ngoals (worst take):")
     for c, bound in GOALS.items():
         worst = summary[c].get("worst", float("nan"))
         print(f"  {c:<28} {worst:8.3f}  <= {bound:g}  {'met' if worst <= bound else 'NOT met'}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"fps": args.fps, "speed": args.speed, "calibration": args.calibration, "rows": rows,
-                                    "summary": summary}, indent=1))  # fmt: skip
-    print(f"\nwritten {args.out}")
+    figures = {"rows": rows, "summary": summary, "totals": totals, "calibration_takes": calibration_takes}
+    goals = [Goal(f"summary.{c}.worst", "<=", bound, LABELS[c][1], label=f"{LABELS[c][0]}, worst take")
+             for c, bound in GOALS.items()]  # fmt: skip
+    table = Table(f"{len(rows)} take{'' if len(rows) == 1 else 's'} at {args.fps:g} fps, mean and worst over takes",
+                  ["figure", "mean", "worst"],
+                  [[f"{LABELS[c][0]}" + (f" ({LABELS[c][1]})" if LABELS[c][1] else ""), f"summary.{c}.mean",
+                    f"summary.{c}.worst"] for c in cols if c in LABELS])  # fmt: skip
+    params = {"types": args.types, "seeds": args.seeds, "fps": args.fps, "speed": args.speed,
+              "calibration": args.calibration, "compare_exact": args.compare_exact,
+              "keep": str(args.keep) if args.keep else None}  # fmt: skip
+    path = write_results(name, figures, params=params, goals=goals, tables=[table], out=args.out,
+                         notes="Worst: the largest value over takes (the smallest for frame pairs/s). Takes recorded "
+                               "in real time: two recordings of one scene differ through the transports' timing.")  # fmt: skip
+    print(f"\nwritten {path}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """MVNX reading: our streaming ``read_mvnx`` against the PyPI ``mvnx`` package (0.2, ``MVNX(path)``,
-which builds the whole ElementTree and parses every element it knows).
+which builds the whole ElementTree and parses every element it knows): seconds and peak memory.
 
-Writes a 10-minute, 23-segment, 60 Hz MVNX file (``--out``, default a temporary folder) with the
+Writes a 10-minute, 23-segment, 60 Hz MVNX file (``--mvnx-file``, default a temporary folder) with the
 per-frame elements of a real export (orientation, position, velocity, acceleration,
 angularVelocity, angularAcceleration, footContacts, sensorFreeAcceleration, sensorMagneticField,
 sensorOrientation, jointAngle, jointAngleXZY, jointAngleErgo, centerOfMass — in MVN's order, which
@@ -13,10 +13,12 @@ seconds of the read (imports excluded), the child's peak RSS (``os.wait4`` rusag
 and its RSS after imports, and the ratios. Then one more child reads the file with both and
 checks they agree.
 
-    .venv/bin/python benchmarks/bench_mvnx.py [--minutes 10] [--repeats 3] [--out FILE.mvnx]
+    .venv/bin/python benchmarks/bench_mvnx.py [--minutes 10] [--repeats 3] [--mvnx-file FILE.mvnx]
 
 Needs ``mvnx`` for the comparison (``.venv/bin/pip install -e '.[bench]'`` or ``pip install mvnx``);
-without it, only ours runs.
+without it, only ours runs. Writes ``benchmarks/results/mvnx.json`` (``--out`` elsewhere): both
+readers' figures and the ratios ``mvnx`` / ours measured in the same run. No goals: the figures
+back the choice of our importer over the package.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from results_file import Table, write_results
 
 FPS = 60.0
 
@@ -141,23 +145,27 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=None, help="MVNX file to write (reused if it exists); default: a temp dir")
+    ap.add_argument("--mvnx-file", type=Path, default=None,
+                    help="MVNX file to write (reused if it exists); default: a temp dir")
+    ap.add_argument("--out", type=Path, default=None, help="results file (default benchmarks/results/mvnx.json)")
     ap.add_argument("--no-check", action="store_true", help="Skip reading with both to compare their values.")
     ap.add_argument("--generate-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.out is not None and args.out.suffix.lower() == ".mvnx":
+        ap.error("--out is the results file (.json); the MVNX file to write is --mvnx-file")
     if args.generate_only:  # in a child, so that this process stays small: a child's ru_maxrss
-        generate(args.out, args.minutes)  # starts at its parent's RSS when it was forked
+        generate(args.mvnx_file, args.minutes)  # starts at its parent's RSS when it was forked
         return
 
     tmp = None
-    if args.out is None:
+    if args.mvnx_file is None:
         tmp = tempfile.TemporaryDirectory(prefix="bench_mvnx_")
         path = Path(tmp.name) / "bench.mvnx"
     else:
-        path = args.out
+        path = args.mvnx_file
     if not path.exists():
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, __file__, "--generate-only", "--out", str(path), "--minutes", str(args.minutes)],
+        subprocess.run([sys.executable, __file__, "--generate-only", "--mvnx-file", str(path), "--minutes", str(args.minutes)],
                        check=True, cwd=Path(__file__).resolve().parents[1])  # fmt: skip
         print(f"wrote {path} in {time.perf_counter() - t0:.1f} s")
     size_mb = path.stat().st_size / 1e6
@@ -179,17 +187,22 @@ def main() -> None:
     print(f"machine: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {runs['ours'][0]['numpy']}")
     label = {"ours": "dualhuman read_mvnx (streaming)", "mvnx": "mvnx 0.2 MVNX(path) (PyPI)"}
     med = {}
+    figures: dict = {"file": {"mb": size_mb, "frames": frames, "minutes": frames / FPS / 60, "segments": 23, "hz": FPS}}
     print(f"{'reader':34s} {'seconds':>9s} {'peak RSS MB':>12s} {'RSS after imports MB':>21s}   (median of {args.repeats})")
     for n in names:
         s = statistics.median(r["seconds"] for r in runs[n])
         peak = statistics.median(r["peak_kb"] for r in runs[n]) / 1024
         base = statistics.median(r["base_kb"] for r in runs[n]) / 1024
         med[n] = (s, peak, base)
+        figures[n] = {"seconds": s, "peak_rss_mb": peak, "rss_after_imports_mb": base, "mb_per_s": size_mb / s,
+                      "runs_s": [r["seconds"] for r in runs[n]]}  # fmt: skip
         print(f"{label[n]:34s} {s:9.2f} {peak:12.0f} {base:21.0f}")
         if any(r["frames"] != frames for r in runs[n]):
             print(f"  warning: {n} read {[r['frames'] for r in runs[n]]} frames")
     if have_mvnx:
         (s_o, p_o, b_o), (s_m, p_m, b_m) = med["ours"], med["mvnx"]
+        figures["mvnx_over_ours"] = {"seconds": s_m / s_o, "peak_rss": p_m / p_o,
+                                     "peak_rss_above_imports": (p_m - b_m) / max(p_o - b_o, 1e-9)}  # fmt: skip
         print(f"mvnx / ours: time {s_m / s_o:.2f}x, peak RSS {p_m / p_o:.2f}x, "
               f"peak RSS above imports {(p_m - b_m) / max(p_o - b_o, 1e-9):.2f}x; "
               f"ours reads {size_mb / s_o:.0f} MB/s, mvnx {size_mb / s_m:.0f} MB/s")  # fmt: skip
@@ -199,12 +212,24 @@ def main() -> None:
                                   cwd=Path(__file__).resolve().parents[1])  # fmt: skip
             if proc.returncode == 0:
                 diffs = json.loads(proc.stdout.strip().splitlines()[-1])
+                figures["agreement_max_abs"] = diffs
                 print("agreement (max |ours converted back - mvnx|): "
                       + ", ".join(f"{k} {v:.1e}" for k, v in diffs.items()))  # fmt: skip
             else:
                 print(f"agreement check failed:\n{proc.stderr[-2000:]}")
     if tmp is not None:
         tmp.cleanup()
+    rows = [["ours (`read_mvnx`, streaming)", "ours.seconds", "ours.peak_rss_mb", "ours.rss_after_imports_mb"]]
+    if have_mvnx:
+        rows += [["PyPI `mvnx` 0.2", "mvnx.seconds", "mvnx.peak_rss_mb", "mvnx.rss_after_imports_mb"],
+                 ["`mvnx` / ours", "mvnx_over_ours.seconds", "mvnx_over_ours.peak_rss", ""]]  # fmt: skip
+    table = Table(f"MVNX import, {figures['file']['minutes']:.3g} min, 23 segments, {FPS:g} Hz, "
+                  f"{size_mb:.0f} MB (median of {args.repeats}, fresh process each)",
+                  ["reader", "seconds", "peak RSS MB", "RSS after imports MB"], rows)  # fmt: skip
+    path = write_results("mvnx", figures, params={"minutes": args.minutes, "repeats": args.repeats, "mvnx": have_mvnx},
+                         tables=[table], out=args.out,
+                         notes="" if have_mvnx else "The `mvnx` package was not installed: ours only.")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
-"""Render stage speed and memory: the full pipeline against a bare Mitsuba render loop.
+"""Render stage speed and memory: the full pipeline against a bare Mitsuba render loop, in the same
+run.
 
 Scene: the ``hug`` ground-truth scene (``make_scene(SceneParams(type="hug", seed=0, fps=15))``,
-cached in ``benchmarks/results/render_hug_seed0_15fps.npz``; ``--sequence`` loads another
+cached in ``benchmarks/cache/render_hug_seed0_15fps.npz``; ``--sequence`` loads another
 InteractionSequence), ``--frames`` frames around its middle (the bodies in contact), a ring of
 ``--views`` cameras, ``--size`` square images, the default template (studio) and sample count.
 
@@ -17,17 +18,20 @@ InteractionSequence), ``--frames`` frames around its middle (the bodies in conta
 Both after a warm-up (JIT compilation), run alternately (load from other processes hits both
 alike); medians of ``--repeats`` runs; ratio = pipeline / bare (goal >= 0.8), by wall time and
 by CPU time of the process (all threads; steadier when other processes share the machine). Then the memory check: ``--memory-frames`` frames (the sequence tiled) at
-``--memory-size`` pixels, one view, full pipeline, resident set size sampled every 0.2 s.
+``--memory-size`` pixels, one view, full pipeline, resident set size sampled every 0.2 s (it
+should stay flat: the growth from 10 % of the frames to the end is recorded).
 
-    python benchmarks/bench_render.py [--size 512] [--views 4] [--frames 2] [--repeats 3]
-        [--variant llvm_ad_rgb] [--memory-frames 1000] [--memory-size 64] [--json PATH]
+    .venv/bin/python benchmarks/bench_render.py [--size 512] [--views 4] [--frames 2] [--repeats 3]
+        [--variant llvm_ad_rgb] [--memory-frames 1000] [--memory-size 64] [--out PATH]
+
+Goal: pipeline / bare >= 0.8 by wall time (``GOAL_RATIO``). Writes ``benchmarks/results/render.json``
+(``render_cuda.json`` for a CUDA variant; ``--out`` elsewhere).
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import json
 import platform
 import statistics
 import sys
@@ -41,7 +45,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-CACHE = REPO / "benchmarks" / "results" / "render_hug_seed0_15fps.npz"
+from results_file import Goal, Table, write_results  # noqa: E402
+
+CACHE = REPO / "benchmarks" / "cache" / "render_hug_seed0_15fps.npz"
+#: Images per second the full pipeline must keep of the bare render loop's.
+GOAL_RATIO = 0.8
 
 
 def rss_mb() -> float:
@@ -61,7 +69,7 @@ def load_sequence(path: Path | None):
         return InteractionSequence.load(CACHE)
     from dualhuman_builder.sim.scenes import SceneParams, make_scene
 
-    print("generating the hug scene (once; cached in benchmarks/results/) ...", flush=True)
+    print("generating the hug scene (once; cached in benchmarks/cache/) ...", flush=True)
     seq = make_scene(SceneParams(type="hug", seed=0, fps=15)).sequence
     CACHE.parent.mkdir(parents=True, exist_ok=True)
     seq.save(CACHE)
@@ -101,10 +109,8 @@ def compare(make, seq, verts, cams, spp, variant, repeats: int, workers: int | N
 
     One Mitsuba scene is alive during each timed run: the bare loop's renderer (``make()``) is
     built for its run, warmed on one frame and released before the pipeline builds its own. With a
-    second scene resident a render is slower (on the H100: 77 -> 70 images/s for the bare loop;
-    Dr.Jit's instance registry, which its virtual calls dispatch over, then holds both scenes'
-    shapes and BSDFs — our reading, not verified), and earlier versions of this bench kept the
-    bare loop's scene alive while the pipeline ran, charging that to the pipeline."""
+    second scene resident every render is slower, which would be charged to whichever side runs
+    second."""
     from dualhuman_builder.render.stage import render_sequence
 
     quiet = lambda s: None  # noqa: E731
@@ -303,7 +309,8 @@ def main(argv=None):
                     help="also time each main-thread step alone and inside the pipeline, and the pipeline with a 0.5 ms "
                          "GIL switch interval and with the file encoders skipped")
     ap.add_argument("--profile", action="store_true", help="also print where one pipeline run's main thread spends its time")
-    ap.add_argument("--json", type=Path, default=None, help="default benchmarks/results/render_<variant>_<size>.json")
+    ap.add_argument("--out", "--json", type=Path, default=None,
+                    help="results file (default benchmarks/results/render.json, or render_cuda.json on CUDA)")
     args = ap.parse_args(argv)
 
     import torch
@@ -356,7 +363,7 @@ def main(argv=None):
     print(f"{'':44s}{'images/s':>10s}{'ms/image':>10s}{'CPU ms/image':>14s}")
     for name, rate, cpu in rows:
         print(f"{name:44s}{rate:10.2f}{1000 / rate:10.1f}{1000 * cpu:14.1f}")
-    print(f"pipeline / bare: {ratio:.3f} by wall time, {ratio_cpu:.3f} by CPU time (goal >= 0.8)")
+    print(f"pipeline / bare: {ratio:.3f} by wall time, {ratio_cpu:.3f} by CPU time (goal >= {GOAL_RATIO:g})")
     print(f"  runs (images/s): bare {[round(x[0], 3) for x in bare_runs]}, pipeline {[round(x[0], 3) for x in full_runs]}")
     print("encoding one view on one thread, ms: " + ", ".join(f"{k} {v}" for k, v in enc.items()))
     if steps:
@@ -366,17 +373,35 @@ def main(argv=None):
               "bare_images_per_s": round(bare, 3), "pipeline_images_per_s": round(full, 3), "ratio": round(ratio, 3),
               "bare_cpu_ms_per_image": round(1000 * bare_cpu, 1), "pipeline_cpu_ms_per_image": round(1000 * full_cpu, 1),
               "ratio_cpu": round(ratio_cpu, 3), "bare_runs": bare_runs, "pipeline_runs": full_runs,
-              "encode_ms": enc, "main_thread_ms": steps, "machine": platform.machine()}  # fmt: skip
+              "encode_ms": enc, "main_thread_ms": steps}  # fmt: skip
     if args.memory_frames:
         mem = memory_check(seq, args.memory_frames, args.memory_size, spp, args.variant)
         print(f"memory over {mem['frames']} frames at {mem['size']}x{mem['size']}, 1 view ({mem['seconds']} s, "
               f"{mem['images_per_s']} images/s): RSS before {mem['rss_before_mb']} MiB, at 10 % {mem['rss_at_10pct_mb']}, "
               f"end {mem['rss_end_mb']}, max {mem['rss_max_mb']}")  # fmt: skip
         print("  RSS at each 10 %: " + ", ".join(f"{n}: {r}" for n, r in mem["rss_steps_mb"]))
+        if mem["rss_at_10pct_mb"] is not None and mem["rss_end_mb"] is not None:
+            mem["rss_growth_mb"] = round(mem["rss_end_mb"] - mem["rss_at_10pct_mb"], 1)
         result["memory"] = mem
-    path = args.json or REPO / "benchmarks" / "results" / f"render_{variant}_{args.size}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
+    result["bare_runs"] = [{"images_per_s": r[0], "cpu_s_per_image": r[1]} for r in bare_runs]
+    result["pipeline_runs"] = [{"images_per_s": r[0], "cpu_s_per_image": r[1]} for r in full_runs]
+    tables = [Table(f"{variant}, {args.size}x{args.size}, {spp} spp, {args.views} views x {args.frames} frames "
+                    f"(median of {args.repeats}, run alternately)", ["render", "images/s", "CPU ms/image"],
+                    [["bare Mitsuba loop", "bare_images_per_s", "bare_cpu_ms_per_image"],
+                     ["full pipeline", "pipeline_images_per_s", "pipeline_cpu_ms_per_image"],
+                     ["pipeline / bare (by wall time; by CPU time)", "ratio", "ratio_cpu"]])]  # fmt: skip
+    if "memory" in result:
+        tables.append(Table(f"memory over {args.memory_frames} frames, {args.memory_size}x{args.memory_size}, one view, "
+                            "full pipeline", ["RSS", "MiB"],
+                            [["before", "memory.rss_before_mb"], ["at 10 % of the frames", "memory.rss_at_10pct_mb"],
+                             ["at the end", "memory.rss_end_mb"], ["growth from 10 % to the end", "memory.rss_growth_mb"],
+                             ["max", "memory.rss_max_mb"]]))  # fmt: skip
+    name = "render_cuda" if variant.startswith("cuda") else "render"
+    params = {k: v for k, v in vars(args).items() if k not in ("out", "diagnose", "profile")}
+    path = write_results(name, result, params=params, tables=tables, out=args.out,
+                         goals=[Goal("ratio", ">=", GOAL_RATIO, "x", label="pipeline / bare loop, images/s by wall time")],
+                         notes="The bare loop's scene is built for its run and released before the pipeline's, so one "
+                               "Mitsuba scene is alive during each timed run. Building the scene is excluded from both.")  # fmt: skip
     print(f"wrote {path}")
 
 

@@ -1,13 +1,17 @@
-"""Scene generation and per-frame ground-truth distances.
+"""Scene generation and per-frame ground-truth distances: how long a generated scene takes, and
+our warp distance queries against libigl's on the frame of a handshake where the bodies are closest.
 
-Prints, for the frame of a handshake where the bodies are closest:
 - signed distances of all vertices of body A to body B: libigl (``igl.signed_distance``,
-  pseudonormal; rebuilds its tree each call) against our warp ``MeshDistance`` (BVH refit per
-  frame), and the full ``PairDistance`` both ways with the body-part broad phase — median of
-  ``--repeats`` runs, ratio against libigl in the same process;
+  pseudonormal; rebuilds its tree each call, the baseline) against our warp ``MeshDistance`` (BVH
+  refit per frame) unbanded and within the 5 cm band the scenes use, and the full ``PairDistance``
+  both ways with the body-part broad phase; median of ``--repeats`` runs each, in this process,
+  with the ratio to libigl;
 - generation seconds per scene type (one run each: a generation is deterministic and long).
 
     .venv/bin/python benchmarks/bench_scenes.py [--fps 15] [--types handshake,hug] [--repeats 7]
+
+Writes ``benchmarks/results/scenes.json`` (``--out`` elsewhere). No goals: the figures back the
+choice of warp over libigl for the ground truth and tell how long a scene takes.
 """
 
 from __future__ import annotations
@@ -15,8 +19,11 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
+
+from results_file import Table, write_results
 
 
 def median_seconds(fn, repeats: int) -> float:
@@ -34,6 +41,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--types", default="handshake,high_five,push,pat_on_back,hug,dance_turn")
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--out", type=Path, default=None, help="results file (default benchmarks/results/scenes.json)")
     args = ap.parse_args()
 
     import igl
@@ -86,6 +94,26 @@ def main() -> None:
     for kind, (seconds, frames) in timings.items():
         print(f"  {kind:12s} {seconds:7.1f} s  {frames:4d} frames  {1000 * seconds / frames:6.0f} ms/frame")
 
+    methods = {"igl": t_igl, "warp_1m": t_warp, "warp_5cm": t_band, "pair_distance": t_pair}
+    figures = {
+        "distances": {"frame": f, "vertices": int(model.num_vertices), "repeats": args.repeats,
+                      **{k: {"ms": 1000 * t, "x_igl": t_igl / t} for k, t in methods.items()}},
+        "generation": {kind: {"seconds": seconds, "frames": frames, "ms_per_frame": 1000 * seconds / frames}
+                       for kind, (seconds, frames) in timings.items()},
+    }  # fmt: skip
+    labels = {"igl": "`igl.signed_distance` (pseudonormal, unbounded)", "warp_1m": "warp BVH refit + query, 1 m band",
+              "warp_5cm": "warp BVH refit + query, 5 cm band (what the scenes use)",
+              "pair_distance": "`PairDistance`, both directions, 5 cm band + body-part broad phase"}  # fmt: skip
+    tables = [Table(f"signed distances, one handshake frame, {model.num_vertices} vertices of A to B "
+                    f"(median of {args.repeats})", ["method", "ms", "x libigl"],
+                    [[labels[k], f"distances.{k}.ms", f"distances.{k}.x_igl"] for k in methods]),
+              Table(f"scene generation at {args.fps:g} fps, seed 0", ["scene type", "seconds", "frames", "ms/frame"],
+                    [[k, f"generation.{k}.seconds", f"generation.{k}.frames", f"generation.{k}.ms_per_frame"]
+                     for k in timings])]  # fmt: skip
+    path = write_results("scenes", figures, params={"fps": args.fps, "types": args.types.split(","),
+                                                    "repeats": args.repeats},
+                         tables=tables, out=args.out)  # fmt: skip
+    print(f"wrote {path}")
 
 if __name__ == "__main__":
     main()

@@ -8,14 +8,21 @@ goal each one is held against, so that the tables in ``docs/`` are generated fro
 File layout::
 
     {"name": "...", "script": "benchmarks/bench_x.py", "command": "bench_x.py --flag ...",
+     "description": "...",                 # what the script measures: its docstring's first paragraph
      "date": "2026-11-27T15:00:00+00:00", "commit": "<sha>[-dirty]",
      "machine": {"cpu": "...", "cores": 2, "memory_gib": 23.4, "gpu": null, "python": "3.11.7",
                  "torch": "2.13.0", "platform": "Linux-..."},
      "params": {...},                      # what the run was asked to do
      "figures": {...},                     # any JSON: the measurements
      "goals": [{"figure": "summary.mpjpe_mm.worst", "op": "<=", "bound": 15.0, "value": 9.6,
-                "unit": "mm", "met": true}],
+                "unit": "mm", "label": "MPJPE, worst take", "met": true}],
+     "tables": [{"title": "...", "columns": ["batch", "bodies/s"],
+                 "rows": [["1", "cpu.1.forward.bodies_per_s"]]}],
      "notes": "..."}
+
+``met`` is null where the figure was not measured (missing, NaN or not a number). A table's rows
+are a label followed by dotted paths into ``figures`` (``""``: an empty cell); ``make_docs.py``
+looks them up, so each figure is written once.
 """
 
 from __future__ import annotations
@@ -27,9 +34,10 @@ import os
 import platform
 import subprocess
 import sys
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ROOT / "benchmarks" / "results"
@@ -38,20 +46,42 @@ RESULTS_DIR = ROOT / "benchmarks" / "results"
 @dataclass(frozen=True)
 class Goal:
     """A bound a figure is measured against: ``figure`` is a dotted path into ``figures``
-    (``"summary.mpjpe_mm.worst"``), ``op`` one of ``<=``, ``>=``."""
+    (``"summary.mpjpe_mm.worst"``; list items by index), ``op`` one of ``<=``, ``>=`` (a boolean
+    figure that must hold: ``>= 1``), ``label`` what the figure is, in words."""
 
     figure: str
     op: str
     bound: float
     unit: str = ""
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        if self.op not in ("<=", ">="):
+            raise ValueError(f"Goal op must be '<=' or '>=', not {self.op!r}")
 
     def check(self, figures: Mapping[str, Any]) -> dict[str, Any]:
         value = lookup(figures, self.figure)
         ok = None
         if isinstance(value, (int, float)) and not (isinstance(value, float) and math.isnan(value)):
-            ok = value <= self.bound if self.op == "<=" else value >= self.bound
+            ok = bool(value <= self.bound if self.op == "<=" else value >= self.bound)
         return {"figure": self.figure, "op": self.op, "bound": self.bound, "value": value, "unit": self.unit,
-                "met": ok}  # fmt: skip
+                "label": self.label, "met": ok}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table of main figures for the generated docs: ``columns`` heads it; each row is a label
+    followed by one dotted path into ``figures`` per further column (``""``: an empty cell)."""
+
+    title: str
+    columns: Sequence[str]
+    rows: Sequence[Sequence[str]]
+
+    def as_dict(self) -> dict[str, Any]:
+        for row in self.rows:
+            if len(row) != len(self.columns):
+                raise ValueError(f"table {self.title!r}: row {list(row)} has {len(row)} cells, not {len(self.columns)}")
+        return {"title": self.title, "columns": list(self.columns), "rows": [list(r) for r in self.rows]}
 
 
 def lookup(figures: Mapping[str, Any], dotted: str) -> Any:
@@ -133,21 +163,34 @@ def _no_nan(o: Any) -> Any:
     return o
 
 
+def summary(doc: str | None) -> str:
+    """The first paragraph of a docstring, on one line."""
+    return " ".join((doc or "").strip().split("\n\n")[0].split())
+
+
 def write_results(name: str, figures: Mapping[str, Any], *, params: Mapping[str, Any] | None = None,
-                  goals: Iterable[Goal] = (), notes: str = "", out: Path | None = None) -> Path:  # fmt: skip
+                  goals: Iterable[Goal] = (), tables: Iterable[Table] = (), notes: str = "",
+                  description: str | None = None, out: Path | None = None) -> Path:  # fmt: skip
     """Write ``benchmarks/results/<name>.json`` (or ``out``) and return its path. ``figures`` and
-    ``params`` may hold numpy values; NaN and infinity are written as null."""
+    ``params`` may hold numpy values and paths; NaN and infinity are written as null.
+    ``description`` (what the benchmark measures) defaults to the first paragraph of the running
+    script's docstring."""
     figures = json.loads(json.dumps(figures, default=_plain))
+    if description is None:
+        description = summary(getattr(sys.modules.get("__main__"), "__doc__", None))
+    script = Path(sys.argv[0]).resolve()
     doc = {
         "name": name,
-        "script": Path(sys.argv[0]).resolve().relative_to(ROOT).as_posix() if Path(sys.argv[0]).resolve().is_relative_to(ROOT) else sys.argv[0],
+        "script": script.relative_to(ROOT).as_posix() if script.is_relative_to(ROOT) else sys.argv[0],
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "date": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
+        "description": description,
+        "date": _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat(),
         "commit": commit(),
         "machine": machine(),
         "params": json.loads(json.dumps(dict(params or {}), default=_plain)),
         "figures": figures,
         "goals": [g.check(figures) for g in goals],
+        "tables": [t.as_dict() for t in tables],
         "notes": notes,
     }
     path = out or RESULTS_DIR / f"{name}.json"

@@ -1,5 +1,7 @@
-"""Skinning scattered (frame, vertex) points with a gradient: the fitter's collision passes read
-their contacts' positions this way (:meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`).
+"""Probe: skinning scattered (frame, vertex) points with a gradient, warp kernels against tensor
+operations. The fitter's collision passes read their contacts' positions this way
+(:meth:`~dualhuman_builder.fit.skeleton.BodyRig.skin_at`); this measures the choice of the kernels
+on the CPU (decision record 0020).
 
 Compares, for a batch of posed frames (one actor, the driven rotations and hand openings
 differentiable) and ``M`` random (frame, vertex) points:
@@ -11,10 +13,13 @@ differentiable) and ``M`` random (frame, vertex) points:
 
 Both include the bones' posing (``BodyRig.pose`` without vertices) and its backward. Prints the
 median of ``--repeats`` runs (after two warm-ups) per point count, forward alone and forward with
-backward, and the ratio; checks that both give the same points and gradients.
+backward, and the ratio torch / warp, both measured in the same run; checks that both give the same
+points and gradients (it stops if they do not).
 
-    python benchmarks/bench_skin_at.py                    # 5,000 / 20,000 / 50,000 points, 30 frames
-    python benchmarks/bench_skin_at.py --points 100000 --frames 48 --repeats 21
+    .venv/bin/python benchmarks/probes/probe_skin_at.py               # 5,000 / 20,000 / 50,000 points, 30 frames
+    .venv/bin/python benchmarks/probes/probe_skin_at.py --points 100000 --frames 48 --repeats 21
+
+Writes ``benchmarks/results/probe_skin_at.json`` (``--out`` elsewhere).
 """
 
 from __future__ import annotations
@@ -22,7 +27,15 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
+import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from results_file import Table, write_results  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
 
 
 def main(argv=None) -> None:
@@ -30,6 +43,7 @@ def main(argv=None) -> None:
     ap.add_argument("--points", type=int, nargs="+", default=[5000, 20000, 50000])
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--out", type=Path, default=None, help="results file (default benchmarks/results/probe_skin_at.json)")
     args = ap.parse_args(argv)
 
     import roma
@@ -47,6 +61,7 @@ def main(argv=None) -> None:
     transl = torch.randn(B, 3, generator=g)
     print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, 1 thread; {B} frames, medians of {args.repeats}")
     print(f"{'points':>8} {'warp fwd':>10} {'torch fwd':>10} {'warp f+b':>10} {'torch f+b':>10} {'f+b ratio':>10}")
+    rows = []
     for M in args.points:
         frames = torch.randint(0, B, (M,), generator=g)
         verts = torch.randint(0, rig.num_vertices, (M,), generator=g)
@@ -78,8 +93,24 @@ def main(argv=None) -> None:
                     ts.append(time.perf_counter() - t)
                 ms[name, backward] = 1000 * statistics.median(ts)
         ratio = ms["torch", True] / ms["warp", True]
+        rows.append({"points": M, "warp_forward_ms": ms["warp", False], "torch_forward_ms": ms["torch", False],
+                     "warp_forward_backward_ms": ms["warp", True], "torch_forward_backward_ms": ms["torch", True],
+                     "torch_over_warp_forward_backward": ratio})  # fmt: skip
         print(f"{M:>8} {ms['warp', False]:>8.2f}ms {ms['torch', False]:>8.2f}ms {ms['warp', True]:>8.2f}ms "
               f"{ms['torch', True]:>8.2f}ms {ratio:>9.2f}x")  # fmt: skip
+    figures = {"frames": B, "repeats": args.repeats, "torch_threads": 1, "points": rows,
+               "same_points_and_gradients": True}  # fmt: skip
+    table = Table(f"{B} frames, the bones' posing included, ms (median of {args.repeats})",
+                  ["points", "warp forward", "torch forward", "warp forward+backward", "torch forward+backward",
+                   "torch / warp, forward+backward"],
+                  [[f"{r['points']:,}"] + [f"points.{k}.{c}" for c in ("warp_forward_ms", "torch_forward_ms",
+                   "warp_forward_backward_ms", "torch_forward_backward_ms", "torch_over_warp_forward_backward")]
+                   for k, r in enumerate(rows)])  # fmt: skip
+    path = write_results("probe_skin_at", figures, params={"points": args.points, "frames": B, "repeats": args.repeats},
+                         tables=[table], out=args.out,
+                         notes="Both paths give the same points (1e-5 m) and gradients (1e-4 relative); the probe "
+                               "stops before timing when they do not.")  # fmt: skip
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":
