@@ -316,14 +316,16 @@ def check_libigl() -> Check:
 
 
 def check_warp() -> Check:
-    """``wp.init()`` and a signed point query on a CPU ``wp.Mesh`` (BVH) of a tetrahedron."""
+    """warp started as the toolkit starts it and a signed point query on a CPU ``wp.Mesh`` (BVH) of a
+    tetrahedron; without an NVIDIA driver, the detail says why warp has no CUDA device."""
     fix = f"{SETUP_FIX} (warp-lang); without warp, anny falls back to slower dense skinning"
     try:
         import numpy as np
-        import warp as wp
+
+        from dualhuman_builder.warp_runtime import cuda_driver_problem, init_warp
 
         with _quiet_warp():
-            wp.init()
+            wp = init_warp()
 
             @wp.kernel(module="unique")
             def signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
@@ -351,8 +353,21 @@ def check_warp() -> Check:
         return Check("geometry", "warp", "warn", f"warp {wp.__version__}: mesh query gave {got.tolist()}, "
                                                  f"expected {expected.tolist()}", fix)
     devices = ", ".join(str(d) for d in wp.get_devices())
+    no_cuda = cuda_driver_problem()
     return Check("geometry", "warp", "ok", f"warp {wp.__version__}: CPU mesh query exact in {seconds * 1e3:.1f} ms "
-                 f"incl. kernel load; devices: {devices}")
+                 f"incl. kernel load; devices: {devices}" + (f" (no CUDA: {no_cuda})" if no_cuda else ""))
+
+
+def check_kernel_cache() -> Check:
+    """warp's kernel cache holds the pipeline's kernels compiled from this code (else each stage
+    compiles its kernels on its first run on this machine: a warning)."""
+    from dualhuman_builder.kernel_cache import kernel_cache_status
+
+    status = kernel_cache_status()
+    if status["built"]:
+        return Check("geometry", "warp kernel cache", "ok", f"{status['cache_dir']}: {status['detail']}")
+    return Check("geometry", "warp kernel cache", "warn", f"not built in {status['cache_dir']}: {status['detail']}; "
+                 "each stage compiles its warp kernels on its first run", "dualhuman body warm")
 
 
 # ----------------------------------------------------------------------------------------- storage
@@ -422,6 +437,7 @@ def _plan(render: bool) -> list[tuple[str, str, bool, Callable[[], Check | list[
     plan += [
         ("geometry", "libigl", True, check_libigl),
         ("geometry", "warp", False, check_warp),
+        ("geometry", "warp kernel cache", False, check_kernel_cache),
         ("storage", "sqlite", True, check_sqlite),
         ("storage", "disk space", False, check_disk),
     ]

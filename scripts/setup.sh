@@ -8,7 +8,9 @@
 #   2. A virtual environment in .venv (override with DUALHUMAN_VENV).
 #   3. A CPU PyTorch when none is present (torch==2.13.0 lies on this kind of machine's disk).
 #   4. This package, editable, with its test extras (re-run when pyproject.toml changes).
-#   5. A warm anny cache (~790 MB under ~/.cache/anny, ~2-3 minutes once per machine).
+#   5. The machine's caches, built by `dualhuman body warm` (checked with `body warm --check`):
+#      anny's model cache (~790 MB under ~/.cache/anny) and warp's kernel cache (the pipeline's
+#      CPU kernels compiled under ~/.cache/warp/<version>, so that no stage compiles on first use).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=${DUALHUMAN_VENV:-.venv}
@@ -51,9 +53,9 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import dualhuman_
 fi
 
 if ! "$VENV/bin/dualhuman" body warm --check >/dev/null 2>&1; then
-  echo "setup: building the anny body-model cache (once per machine, a few minutes)"
+  echo "setup: building the anny body-model cache and warp's kernel cache (once per machine, a few minutes)"
   "$VENV/bin/dualhuman" body warm
-  did+=("anny-cache")
+  did+=("caches")
 fi
 
 if [ ${#did[@]} -eq 0 ]; then

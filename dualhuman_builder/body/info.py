@@ -11,9 +11,11 @@ def warm_cache() -> dict[str, Any]:
 
     Returns ``{"built": bool, "seconds": float, "cache_dir": str, "cache_mb": float}``.
     """
-    import anny
-
     from dualhuman_builder.body.model import anny_cache_dir, anny_cache_is_warm
+    from dualhuman_builder.warp_runtime import init_warp
+
+    init_warp()  # before anny starts it, so that it starts quietly
+    import anny
 
     was_warm = anny_cache_is_warm()
     t0 = time.perf_counter()

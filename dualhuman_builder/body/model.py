@@ -59,7 +59,8 @@ def anny_cache_files() -> list[Path]:
 
 
 def anny_cache_is_warm() -> bool:
-    """True when constructing the default model loads from cache (< 1 s) instead of building."""
+    """True when constructing the default model loads anny's built data from its cache instead of
+    building it (see :func:`anny_cache_files`)."""
     return bool(anny_cache_files())
 
 
@@ -194,8 +195,9 @@ class BodyModel:
         """Bone heads ``(B, J, 3)`` (world metres, Y-up) of :meth:`forward` without skinning the
         mesh: forward kinematics over the bone tree from the zero-pose heads of ``shape`` (one anny
         call at batch 1). Same inputs as :meth:`forward` (one shape for the batch); equal to its
-        ``bone_heads`` within 1e-5 m (tests/test_body.py). The export uses it for track joints
-        (benchmarks/bench_export.py: 163 -> 468 sequences/min)."""
+        ``bone_heads`` within 1e-5 m (``tests/body/test_body.py``). The export uses it for track
+        joints, which need no mesh (docs/decisions/0024-export-format-and-loaders.md;
+        ``benchmarks/bench_export.py``)."""
         B = batch_size or _batch_of(pose, transl, shape)
         local = self._rotations(pose, B)
         shape_t = self.shape_tensor(shape)
@@ -279,11 +281,12 @@ class BodyModel:
 
 
 def _quiet_warp() -> None:
-    """Keep warp's start-up banner (printed when anny initialises it) out of the CLI's output."""
+    """Start warp before anny does, without its banner or (on a machine without an NVIDIA driver)
+    its CUDA-driver warning: :func:`~dualhuman_builder.warp_runtime.init_warp`."""
     try:
-        import warp
+        from dualhuman_builder.warp_runtime import init_warp
 
-        warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
+        init_warp()
     except Exception:  # warp is optional for anny (it falls back to dense skinning)
         pass
 
@@ -293,9 +296,9 @@ def _reuse_skinning_kernels() -> None:
     at every call.
 
     anny 0.6.2's ``LinearBlendSkinning.forward`` calls ``warp_skinning.get_kernel``, which defines a
-    fresh ``@wp.kernel`` each time: warp then parses and generates its code again (~2.3 ms a call
-    here; 819 calls cost 1.9 s of a 45 s fit of the fit benchmark's hug, cProfile, 2026-11-26). The
-    kernel depends only on the arguments, so the first one built for them serves every later call."""
+    fresh ``@wp.kernel`` each time, so warp parses and generates its code again at every skinning
+    call, and a fit makes many (``benchmarks/bench_fit.py`` times one). The kernel depends only on
+    the arguments, so the first one built for them serves every later call."""
     try:
         from anny.skinning import warp_skinning
     except Exception:  # no warp: anny skins densely

@@ -22,8 +22,9 @@ def import_(workspace: Path, file: Path, take: str | None, actor: str | None, sc
     streaming; calibration poses and every per-frame array kept) or a Biovision .bvh.
 
     The file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read from it
-    (skeleton.npz, Y-up metres), and the take is registered with checksums. Example:
-    dualhuman import ws session3.mvnx --actor alice
+    (skeleton.npz, Y-up metres), and the take is registered with checksums.
+
+    Example:  dualhuman import WS session3.mvnx --actor alice
     """
     from rich.markup import escape
 
@@ -76,8 +77,9 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
     \b
     Examples:
       dualhuman capture --rig rigs/studio.toml --take T001 --duration 60 -w WS
-      dualhuman capture --source 'sim://handshake?seed=3' --take sim1 --out sim1.mcap
-      dualhuman capture --source suits=mvn+udp://:9763 --actor alice=suits#0 --take T2 --out T2.mcap
+      dualhuman capture --source 'sim://handshake?seed=3' --take S1 --out S1.mcap
+      dualhuman capture --source suits=mvn+udp://:9763 --actor alice=suits#0 \\
+          --take T2 --out T2.mcap
     """
     import math
 
@@ -167,14 +169,15 @@ def log_repair(take_file: Path, out: Path | None):
 
 @log.command("dump")
 @click.argument("take_file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
-@click.option("--jsonl", is_flag=True, help="One JSON object per line (the only format for now).")
+@click.option("--jsonl", is_flag=True, help="One JSON object per line (the only format; the default).")
 @click.option("--raw", is_flag=True, help="Also dump the raw packets (hex).")
 @click.option("--topic", "topics", multiple=True, help="Only topics starting with this; repeatable.")
 def log_dump(take_file: Path, jsonl: bool, raw: bool, topics: tuple[str, ...]):
     """Print every decoded sample: source, character or device, device and host timestamps (ns),
     fields in SI units (metres, m/s, m/s^2, rad/s; quaternions x, y, z, w; Y-up world).
 
-    Example: dualhuman log dump T001.mcap --jsonl | head"""
+    Example:  dualhuman log dump T001.mcap --jsonl | head
+    """
     from dualhuman_builder.capture.log.reader import dump_jsonl
 
     try:
@@ -198,7 +201,8 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
     \b
     Examples:
       dualhuman replay T001.mcap --verify
-      dualhuman replay T001.mcap --to mvn+udp://127.0.0.1:9763 --to vive+udp://127.0.0.1:8051 --speed 1
+      dualhuman replay T001.mcap --speed 1 --to mvn+udp://127.0.0.1:9763 \\
+          --to vive+udp://127.0.0.1:8051
     """
     import math
     import time

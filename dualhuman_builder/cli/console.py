@@ -1,19 +1,29 @@
-"""Terminal presentation for the CLI (rich tables); library code never prints."""
+"""Terminal presentation for the CLI (the status grid, rich tables, errors); library code never prints."""
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any
 
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
-STATE_STYLE = {
-    "done": "[green]done[/]",
-    "failed": "[red]failed[/]",
-    "running": "[yellow]running[/]",
-    "interrupted": "[magenta]interrupted[/]",
+#: Per run state: the glyph in the status grid (Unicode, and ASCII for other terminals) and its colour.
+STATE_GLYPHS = {
+    "done": ("✓", "+", "green"),
+    "failed": ("✗", "x", "red"),
+    "running": ("▶", ">", "yellow"),
+    "interrupted": ("!", "!", "magenta"),
+    None: ("·", ".", "dim"),  # not run yet
 }
+STATE_WORDS = {"done": "done", "failed": "failed", "running": "running", "interrupted": "interrupted", None: "not run"}
+
+
+def is_utf8(console: Console) -> bool:
+    """Whether ``console`` writes UTF-8 (then the status marks are Unicode, else ASCII)."""
+    return (console.encoding or "").lower().replace("-", "").startswith("utf")
 
 
 def print_error(console: Console, err) -> None:
@@ -25,28 +35,119 @@ def print_error(console: Console, err) -> None:
         console.print(f"  [bold]fix:[/] {escape(err.fix)}", **kw)
 
 
-def status_table(rows: list[dict[str, Any]], stages: tuple[str, ...], title: str) -> Table:
-    """Takes and sequences (rows) x stages (columns); a cell shows the run's state and hash."""
-    seen = [s for s in stages if any(s in r["stages"] for r in rows)]
-    extra = sorted({s for r in rows for s in r["stages"]} - set(stages))
-    columns = seen + extra or list(stages[:1])
-    table = Table(title=title, title_justify="left")
-    table.add_column("take", style="bold")
-    table.add_column("sequence")
-    table.add_column("frames", justify="right")
-    for s in columns:
-        table.add_column(s)
-    for r in rows:
-        frames = "" if "frames" not in r else f"{r['frames'][0]}-{r['frames'][1]}"
-        cells = []
-        for s in columns:
-            info = r["stages"].get(s)
-            if info is None:
-                cells.append("[dim]-[/]")
+def _row_name(r: dict[str, Any]) -> str:
+    return r["take"] if r["sequence"] is None else f"{r['take']}/{r['sequence']}"
+
+
+def _frames(r: dict[str, Any]) -> str:
+    return "" if "frames" not in r else f"{r['frames'][0]}-{r['frames'][1]}"
+
+
+def status_grid(rows: list[dict[str, Any]], stages, title: str, width: int = 80, unicode: bool = True) -> list[Text]:
+    """The lines of ``dualhuman status``: one line per take and per sequence of it (indented),
+    one column per stage (``stages``: objects with ``name`` and ``per``, in pipeline order) with a
+    glyph for its state where the stage runs at that level, a legend, and the runs that need a look
+    (failed, interrupted, running) with their errors. Plain text without styles where the console
+    has no colours; no line is cut: where the grid would pass ``width``, names go on their own line."""
+    names = [s.name for s in stages]
+    per = {s.name: s.per for s in stages}
+    names += sorted({n for r in rows for n in r["stages"]} - set(names))  # stages the registry no longer has
+    pick = 0 if unicode else 1
+    out = [Text(title, style="bold")]
+    if not rows:
+        out.append(Text("no takes yet", style="dim"))
+        return out
+    labels = [r["take"] if r["sequence"] is None else "  " + r["sequence"] for r in rows]
+    frames = [_frames(r) for r in rows]
+    name_w = max(len(x) for x in labels)
+    frames_w = max(len(x) for x in frames)
+    grid_w = sum(len(n) for n in names) + len(names) - 1
+    left = name_w + 2 + (frames_w + 2 if frames_w else 0)
+    stacked = left + grid_w > width
+    indent = 4 if stacked else left
+    out.append(Text(" " * indent + " ".join(names), style="bold"))
+    for r, label, fr in zip(rows, labels, frames):
+        level = "take" if r["sequence"] is None else "sequence"
+        line = Text()
+        head = label.ljust(name_w) + ("  " + fr.rjust(frames_w) if frames_w else "")
+        line.append(head.rstrip() if stacked else head.ljust(indent), style="bold" if level == "take" else "")
+        if stacked:
+            out.append(line)
+            line = Text(" " * indent)
+        cells = Text()
+        for i, n in enumerate(names):
+            info = r["stages"].get(n)
+            if info is None and per.get(n, level) != level:
+                cell, style = " ", ""
             else:
-                cells.append(f"{STATE_STYLE.get(info['state'], info['state'])} [dim]{info['hash']}[/]")
-        table.add_row(escape(r["take"]), escape(r["sequence"]) if r["sequence"] else "[dim](take)[/]", frames, *cells)
-    return table
+                state = None if info is None else info["state"]
+                glyphs = STATE_GLYPHS.get(state, ("?", "?", "bold"))
+                cell, style = glyphs[pick], glyphs[2]
+            pad = len(n) - 1
+            cells.append(" " * (pad // 2))
+            cells.append(cell, style=style)
+            cells.append(" " * (pad - pad // 2) + (" " if i < len(names) - 1 else ""))
+        cells.rstrip()
+        line.append_text(cells)
+        line.rstrip()
+        out.append(line)
+    legend = "  ".join(f"{g[pick]} {STATE_WORDS[k]}" for k, g in STATE_GLYPHS.items())
+    out.append(Text(""))
+    out.append(Text(legend + "   (--long: hashes, times)", style="dim"))
+    for r in rows:
+        for n in names:
+            info = r["stages"].get(n)
+            if info is not None and info["state"] != "done":
+                glyphs = STATE_GLYPHS.get(info["state"], ("?", "?", "bold"))
+                line = Text(f"{_row_name(r)} {n}: ")
+                line.append(info["state"], style=glyphs[2])
+                if info.get("error"):
+                    line.append(f": {info['error'].strip().splitlines()[0]}")
+                out.append(line)
+    return out
+
+
+def status_long(rows: list[dict[str, Any]], stages, title: str) -> list[Text]:
+    """``dualhuman status --long``: per take and per sequence, one line per stage run (state,
+    parameters hash, when it ended, how many artifacts), errors in full below a failed run."""
+    names = [s.name for s in stages]
+    names += sorted({n for r in rows for n in r["stages"]} - set(names))
+    out = [Text(title, style="bold")]
+    if not rows:
+        out.append(Text("no takes yet", style="dim"))
+        return out
+    stage_w = max(len(n) for n in names)
+    for r in rows:
+        head = Text(_row_name(r), style="bold")
+        if "frames" in r:
+            head.append(f"  frames {_frames(r)}")
+        out.append(head)
+        ran = [n for n in names if n in r["stages"]]
+        if not ran:
+            out.append(Text("  no stage run yet", style="dim"))
+        for n in ran:
+            info = r["stages"][n]
+            style = STATE_GLYPHS.get(info["state"], ("?", "?", "bold"))[2]
+            line = Text(f"  {n.ljust(stage_w)}  ")
+            line.append(info["state"].ljust(11), style=style)
+            line.append(f"  {info['hash']}  {_when(info.get('ended_at'))}")
+            n_art = info.get("artifacts")
+            if n_art is not None:
+                line.append(f"  {n_art} artifact{'' if n_art == 1 else 's'}")
+            out.append(line)
+            for err_line in (info.get("error") or "").strip().splitlines():
+                out.append(Text(f"      {err_line}", style="red"))
+    return out
+
+
+def _when(stamp: str | None) -> str:
+    """A catalog time stamp (ISO 8601) in local time to the second; ``-`` when there is none."""
+    if not stamp:
+        return "-"
+    try:
+        return datetime.fromisoformat(stamp).astimezone().strftime("%Y-%m-%d %H:%M:%S")
+    except ValueError:
+        return stamp
 
 
 def body_info_tables(info: dict[str, Any], bones: bool, mapping: bool, regions: bool) -> list:

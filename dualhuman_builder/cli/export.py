@@ -16,9 +16,9 @@ def annotate():
     """Interaction labels and descriptions: round-trip them through any annotation tool.
 
     \b
-      dualhuman annotate vocabulary [WS]             the label names you may use
-      dualhuman annotate export WS labels.csv        every take and sequence, annotated or blank
-      dualhuman annotate import WS labels.csv        read them back (CSV or JSON Lines)
+      dualhuman annotate vocabulary [WS]       the label names you may use
+      dualhuman annotate export WS labels.csv  every take and sequence, to fill in
+      dualhuman annotate import WS labels.csv  read them back (CSV or JSON Lines)
 
     A label record: labels from the vocabulary (CHI3D's eight types and NTU-120's mutual actions,
     extended by WS/labels.toml), actor and reactor for one-sided interactions, a symmetric flag,
@@ -118,11 +118,11 @@ def export():
     """The training-ready dataset: build it, verify it, shard it, convert it.
 
     \b
-      dualhuman export WS OUT                every fitted take of WS -> the dataset folder OUT
-      dualhuman export verify OUT            checksums, schema, splits, shapes, NaNs
-      dualhuman export shards OUT DIR        WebDataset tar shards of a split, for streaming
-      dualhuman export interhuman OUT DEST   InterGen's InterHuman layout (two persons, 30 fps)
-      dualhuman export humanml3d OUT DEST    HumanML3D's layout (one motion per person, 20 fps)
+      dualhuman export WS OUT               the fitted takes of WS -> dataset OUT
+      dualhuman export verify OUT           checksums, schema, splits, NaNs
+      dualhuman export shards OUT DIR       WebDataset tar shards of a split
+      dualhuman export interhuman OUT DEST  InterGen's InterHuman layout (30 fps)
+      dualhuman export humanml3d OUT DEST   HumanML3D's layout (20 fps)
     """
 
 

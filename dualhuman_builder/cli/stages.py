@@ -18,11 +18,10 @@ def _take_options(f):
                      help="Do not solve the suit's segment misalignments with the tracker mounts (to see what they buy).")(f)
     f = click.option("--mounts-from", "mounts_from", metavar="TAKE", default=None,
                      help="The session's calibration take (actors bowing, twisting, raising their arms and turning on "
-                          "the spot; `sim://calibration` simulates one): each tracker worn there by the same actor on "
-                          "the same segment keeps the mount solved there. A take whose actors hardly move then still "
-                          "gets its heading and its trackers' offsets right; a tracker strapped again since is found "
-                          "and solved afresh. The trackers' lag behind the suits (the session's latencies) is averaged "
-                          "with the one measured there, unless it moved by over 3 ms (a warning).")(f)
+                          "the spot; `sim://calibration` simulates one). Each tracker worn there by the same actor on "
+                          "the same segment keeps the mount solved there (one strapped again since is solved afresh), "
+                          "and the trackers' lag behind the suits is averaged with the one measured there unless the "
+                          "two differ by over 3 ms (then a warning). For takes whose actors hardly move.")(f)
     f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
     return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
 
@@ -33,23 +32,21 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
          force: bool):  # fmt: skip
     """Put a take's streams on one timeline and calibrate the trackers.
 
-    Per stream: its clock's offset and drift against the host (a robust fit of the lower envelope
-    of device-vs-host stamps: delayed packets are rejected). Per tracker: the residual lag against
-    the suit segment it is strapped to (cross-correlation of angular speeds) and its mounting
-    rotation and offset (least squares, with the suit's heading and position drift, and the
-    suit's segment misalignments along each tracker's chain from the pelvis: a suit's limbs sit
-    where its measured orientations put them, tens of millimetres off, and the offsets would
-    otherwise absorb that). Writes sync.npz and sync.json (estimates with 1-sigma uncertainties).
+    Per stream: its clock's offset and drift against the host (delayed packets rejected). Per
+    tracker: its lag behind the suit segment it is strapped to, and its mounting rotation and
+    offset on that segment, solved together with the suit's heading and position drift and
+    (unless --no-suit-chain) the suit's segment misalignments along the tracker's chain from the
+    pelvis. Writes sync.npz and sync.json (estimates with 1-sigma uncertainties).
 
-    An actor who hardly turns a segment (standing still while patted, shaking hands) leaves the
-    trackers' mounting rotations and shared offset to where the protocol says they are strapped,
-    and a short take measures the trackers' lag less well than a long one; start the session with
-    a calibration take and pass it with --mounts-from (mounts and lag carry over).
+    A take whose actors hardly turn a segment (standing still, shaking hands) leaves the mounts
+    to where the protocol says the trackers are strapped, and a short take measures the lag
+    poorly: start the session with a calibration take (CAL below) and pass it with
+    --mounts-from.
 
     \b
     Examples:
       dualhuman sync WS --take T001
-      dualhuman sync WS --take T002 --mounts-from T001   # T001: the session's calibration take
+      dualhuman sync WS --take T002 --mounts-from CAL
     """
     from dualhuman_builder.sync.stage import run_sync
     from dualhuman_builder.workspace import Workspace
@@ -88,15 +85,14 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
               help="Keep anny's relaxed fingers: do not let the collision term open the hands (thumb and fingers).")
 @click.option("--exact-contacts", is_flag=True,
               help="Locate the collision contacts at every L-BFGS evaluation instead of holding them through each pass "
-                   "(the fallback the default uses where held contacts stall; slower, for comparison).")
+                   "(the default falls back to this where held contacts stall; slower; for comparison).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
 @click.option("--device", default="cpu", show_default=True,
-              help="torch device for the fit, e.g. cuda. The CPU is the faster choice even where a GPU is: the fit's "
-                   "many small tensor operations gain little there, and a GPU fit runs in one process "
-                   "(a 1-minute hug on an H200 machine: 8.5-10.2 frame pairs/s on cuda, 39-51 on its 16 CPUs).")
+              help="torch device for the fit, e.g. cuda. Prefer the CPU even where a GPU is: the fit's many small "
+                   "tensor operations gain little on a GPU, and a GPU fit runs in one process (no --workers).")
 @click.option("--threads", type=click.IntRange(min=0), default=1, show_default=True,
-              help="torch CPU threads during the fit. 1 makes a fit of the same take repeat exactly; more can be "
-                   "~10-20 % faster but the result then varies from run to run; 0 keeps torch's own setting.")
+              help="torch CPU threads during the fit. 1 makes a fit of the same take repeat exactly; more may "
+                   "be faster, but the result then varies from run to run; 0 keeps torch's own setting.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Processes to fit the take's segments on, this one included (1: only this one). Default: one per "
                    "CPU, no more than there are segments (two windows each) or than leave ~2 GiB of available memory "
@@ -111,12 +107,14 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
     orientation, tracker, smoothness, floor and foot-stance terms plus an SDF collision term between
     the two bodies. The suit measures no fingers: where a hand lies on the partner, the collision
     term opens its thumb and fingers (between anny's relaxed hand and flat) before it moves any
-    bone. Writes bodies.npz, shapes.json, frames.npz and report.html / report.png.
-    Runs `sync` and `fuse` first if needed. The take is fitted in segments of two windows, on
-    --workers processes at once; consecutive segments are cross-faded over the frames they share
-    (and a seam whose blend leaves the bodies in each other is fitted again).
+    bone. The take is fitted in segments of two windows on --workers processes at once;
+    consecutive segments are cross-faded over the frames they share. Writes bodies.npz,
+    shapes.json, frames.npz and report.html / report.png. Runs `sync` and `fuse` first if needed.
 
-    Example:  dualhuman fit WS --take T001
+    \b
+    Examples:
+      dualhuman fit WS --take T001
+      dualhuman fit WS --take T002 --mounts-from CAL --workers 4
     """
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.stage import run_fit
@@ -142,15 +140,19 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
                    "gets at least 48 frames. The result does not depend on it.")
 @click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")
 def contacts(workspace: Path, take: str, threshold: float, band: float, workers: int | None, force: bool):
-    """Per-vertex contacts between the two fitted bodies, frame by frame (libigl).
+    """Per-vertex contacts between the two fitted bodies, frame by frame.
 
-    For every frame, the signed distance of each body's vertices to the other body's surface
-    (libigl, pseudonormal sign, within --band; frames whose bodies' boxes are farther apart are
-    skipped, and a warp BVH picks the vertices and faces libigl must look at), both ways. Writes
-    contacts.npz (per-vertex labels, bit-packed; float16 distances; per-frame flag) and contacts.json (region-level contact events: body-part
-    pairs with start and end frames, like CHI3D's signatures; counts; speed).
+    For every frame, both ways, the signed distance of each body's vertices to the other body's
+    surface within --band (libigl, pseudonormal sign; frames whose bodies are farther apart than
+    the band are skipped). A vertex closer than --threshold, or inside the other body, is in
+    contact. Writes contacts.npz (per-vertex labels, bit-packed; float16 distances; a per-frame
+    flag) and contacts.json (region-level contact events: body-part pairs with start and end
+    frames, like CHI3D's signatures; counts). Needs the take's fit stage.
 
-    Example:  dualhuman contacts WS --take T001
+    \b
+    Examples:
+      dualhuman contacts WS --take T001
+      dualhuman contacts WS --take T001 --threshold 0.01 --force
     """
     from dualhuman_builder.contacts.stage import run_contacts
     from dualhuman_builder.workspace import Workspace

@@ -12,14 +12,20 @@ from dualhuman_builder.cli.app import console, main
 
 @main.command()
 @click.option("--json", "as_json", is_flag=True, help="Print the checks as JSON.")
-@click.option("--no-render", is_flag=True, help="Skip the Mitsuba test renders (they take a few seconds each).")
+@click.option("--no-render", is_flag=True, help="Skip the Mitsuba test renders, the slowest checks (reported as not probed).")
 def doctor(as_json: bool, no_render: bool):
     """Check what works on this machine, and say how to fix what does not.
 
     Checks Python and package versions, torch and CUDA, the anny body-model cache, each
     Mitsuba variant actually rendering a tiny scene (scalar, LLVM with the libLLVM it used, CUDA),
     libigl, warp, SQLite, and which capture backends can open (UDP, serial ports, CAN, USB).
-    Exit status 1 when a required piece is missing.
+    Where there is no NVIDIA GPU, the CUDA checks are skipped with the reason. Exit status 1
+    when a required piece is missing.
+
+    \b
+    Examples:
+      dualhuman doctor
+      dualhuman doctor --no-render --json
     """
     from dualhuman_builder import doctor as doc
 
@@ -36,17 +42,22 @@ def doctor(as_json: bool, no_render: bool):
 @main.command()
 @click.argument("workspace", required=False, default="demo-workspace", type=click.Path(file_okay=False, path_type=Path))
 def demo(workspace: Path):
-    """Run the whole pipeline that exists so far on simulated actors, into WORKSPACE
-    (default ./demo-workspace; created if missing, reused if present — a second run only checks
-    that everything is up to date). Ends by printing where the outputs are."""
-    from dualhuman_builder.cli.console import status_table
+    """Run the whole pipeline on simulated actors, into WORKSPACE (default ./demo-workspace;
+    created if missing, reused if present: a second run only checks that everything is up to
+    date). Ends with the workspace's status and where the outputs are.
+
+    Example:  dualhuman demo /tmp/demo-ws
+    """
+    from dualhuman_builder.cli.console import is_utf8, status_grid
     from dualhuman_builder.demo import run_demo
-    from dualhuman_builder.pipeline import STAGE_NAMES
+    from dualhuman_builder.pipeline import STAGES
     from dualhuman_builder.workspace import Workspace
 
     result = run_demo(workspace, log=lambda msg: console.print(f"[dim]demo:[/] {msg}", highlight=False))
     with Workspace.open(workspace, readonly=True) as ws:
-        console.print(status_table(ws.status_rows(), STAGE_NAMES, f"workspace {ws.root}"))
+        lines = status_grid(ws.status_rows(), STAGES, f"workspace {ws.root}", width=console.width, unicode=is_utf8(console))
+    for line in lines:
+        console.print(line, soft_wrap=True, highlight=False)
     console.print(f"demo finished in {result.seconds:.1f} s; its outputs:")
     images = [p for k, p in result.outputs.items() if k.startswith("views/")]
     for _, path in sorted((k, p) for k, p in result.outputs.items() if not k.startswith("views/")):

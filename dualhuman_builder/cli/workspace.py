@@ -28,13 +28,27 @@ def init(workspace: Path):
 
 @main.command()
 @click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--long", "long_", is_flag=True,
+              help="One line per stage run: state, parameters hash, end time, artifacts; errors in full.")
 @click.option("--verify", is_flag=True, help="Also re-hash every artifact and take file against the catalog.")
-@click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
-def status(workspace: Path, verify: bool, as_json: bool):
-    """Show takes and sequences x pipeline stages: done, failed, running or interrupted, with
-    each run's parameters hash. Read-only: works on a workspace you cannot write to."""
-    from dualhuman_builder.cli.console import status_table
-    from dualhuman_builder.pipeline import STAGE_NAMES
+@click.option("--json", "as_json", is_flag=True, help="Print every run's state, hash, end time, error and artifact count as JSON.")
+def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
+    """Show which pipeline stages have run for each take and sequence of WORKSPACE.
+
+    One line per take, and an indented line per sequence of it; one column per stage, in
+    pipeline order, with a mark for its state: done, failed, running, interrupted (its process
+    is gone), or not run yet. scene, devices and capture run per sequence, the other stages per
+    take. Runs that failed or did not finish are listed below with their errors. Read-only:
+    works on a workspace you cannot write to. Exit status 1 when --verify finds a problem.
+
+    \b
+    Examples:
+      dualhuman status WS
+      dualhuman status WS --long
+      dualhuman status WS --verify
+    """
+    from dualhuman_builder.cli.console import is_utf8, status_grid, status_long
+    from dualhuman_builder.pipeline import STAGES
     from dualhuman_builder.workspace import Workspace
 
     with Workspace.open(workspace, readonly=True) as ws:
@@ -43,15 +57,20 @@ def status(workspace: Path, verify: bool, as_json: bool):
         if as_json:
             click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))
         else:
-            console.print(status_table(rows, STAGE_NAMES, f"workspace {ws.root}"))
-            if not rows:
-                console.print("[dim]no takes yet[/]")
+            title = f"workspace {ws.root}"
+            if long_:
+                lines = status_long(rows, STAGES, title)
+            else:
+                lines = status_grid(rows, STAGES, title, width=console.width, unicode=is_utf8(console))
+            for line in lines:
+                console.print(line, soft_wrap=True, highlight=False)
             if verify:
                 for p in problems:
-                    console.print(f"[red]problem:[/] {p}")
+                    console.print(f"[red]problem:[/] {p}", highlight=False, soft_wrap=True)
                 console.print("[green]all artifacts match the catalog[/]" if not problems else f"{len(problems)} problem(s)")
     if problems:
         sys.exit(1)
+
 
 @main.group()
 def actor():

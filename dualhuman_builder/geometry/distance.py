@@ -1,19 +1,21 @@
-"""Signed distances between two deforming body meshes, fast enough for every frame.
+"""Signed distances between two deforming body meshes, for every frame of a scene (float32 warp queries).
 
-A warp BVH is built once per body, on the first frame's vertices, and refit per frame (a BVH
-built on placeholder vertices all at one point and then refit made every query walk most of the
-tree: 7.2 frame pairs/s on a hug's contact frames, 30.7 once built on real ones, 2-core CPU);
-``mesh_query_point_sign_normal`` then gives, for each query point within ``band`` of the surface,
-the distance to the closest point with the pseudonormal sign (negative inside). ``tests/test_scenes.py`` checks it against
-``igl.signed_distance`` (pseudonormal) within 1e-4 m on scene distances stored as float16.
-Both directions with the broad phase below: 27.5 frame pairs/s on a hug's contact frames, 52.7 on a
-handshake's (``benchmarks/bench_contacts.py``, row c, 2-core CPU).
+:class:`MeshDistance` keeps a warp BVH of one body mesh: built on the first frame's vertices and
+refit per frame after (a BVH keeps the split planes of its build through every refit, so it is
+built on real vertices, never on placeholders). ``mesh_query_point_sign_normal`` gives, for each
+query point within ``band`` of the surface, the distance to the closest point with the pseudonormal
+sign (negative inside). :class:`PairDistance` answers both directions of a frame; its meshes are the
+body component only (:func:`~dualhuman_builder.body.topology.collision_faces`), closed, so the
+pseudonormal sign is exact wherever the surface does not cross itself.
 
 Broad phase: only vertices of body parts whose bounding boxes, grown by ``band``, overlap a part
 of the other body are queried; frames whose bodies are farther apart than ``band`` cost almost
-nothing. The other body's mesh is its body component only
-(:func:`~dualhuman_builder.body.topology.collision_faces`), whose pseudonormal signs are exact
-because it is closed.
+nothing.
+
+The scene generator and its checks use it. ``tests/sim/test_scenes.py`` checks it against
+``igl.signed_distance`` (pseudonormal) within 1e-4 m on scene distances stored as float16;
+``benchmarks/bench_contacts.py`` (row c) measures its speed. The contacts stage needs libigl's exact
+answer instead (:mod:`dualhuman_builder.geometry.narrow`).
 
 Distances are metres, float64; NaN means "farther than ``band``".
 """
@@ -27,10 +29,11 @@ import numpy as np
 
 @functools.lru_cache(maxsize=1)
 def _kernel():
-    import warp as wp
+    """warp and the ``signed_distance`` kernel: per point, its pseudonormal signed distance to the
+    mesh (float32 metres, negative inside) where within ``band``, NaN elsewhere."""
+    from dualhuman_builder.warp_runtime import init_warp
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
+    wp = init_warp()
 
     @wp.kernel
     def signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), band: float, out: wp.array(dtype=float)):
@@ -63,8 +66,8 @@ class MeshDistance:
 
     def update(self, vertices: np.ndarray) -> None:
         """Move the mesh to ``vertices (V, 3)`` (metres) and refit its BVH. The BVH is built on
-        the first call's vertices and refit afterwards (built on placeholder vertices, all at one
-        point, its split planes would be arbitrary and every query would visit most of it)."""
+        the first call's vertices and refit afterwards (a refit keeps the build's split planes:
+        built on placeholder points, all at one spot, every query would visit most of the tree)."""
         wp = self._wp
         v = wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=self.device)
         if len(v) != self.num_vertices:
@@ -106,6 +109,7 @@ class PairDistance:
             self.groups = [np.flatnonzero(vertex_region == r) for r in np.unique(vertex_region)]
 
     def _boxes(self, verts: np.ndarray) -> np.ndarray:
+        """Per body part (one part without regions), the box ``(lo, hi)`` of ``verts (V, 3)``: ``(R, 2, 3)``."""
         groups = self.groups if self.groups is not None else [np.arange(len(verts))]
         return np.array([(verts[g].min(0), verts[g].max(0)) for g in groups])  # (R, 2, 3)
 

@@ -1,9 +1,9 @@
-"""Which vertices lie within the band, their closest faces and signed distances, and the faces a
-banded libigl query needs: warp BVHs refit per frame.
+"""The contacts stage's narrow phase: which vertices lie within the band of the other body, their
+closest faces and signed distances, and the faces a banded libigl query needs. Warp BVHs refit per frame.
 
 :class:`NearSelector` keeps one warp BVH per body (built once at the topology's reference pose,
-refit to each frame: under 1 ms) and answers one direction of a frame with
-:meth:`~NearSelector.query`, in two kernels:
+refit to each frame) and answers one direction of a frame with :meth:`~NearSelector.query`, in two
+kernels:
 
 * **closest** — for every vertex ``p`` of the query body inside the other body's box grown by the
   band (and inside one of its face groups' boxes, e.g. body regions, grown by the band), its
@@ -17,24 +17,26 @@ refit to each frame: under 1 ms) and answers one direction of a frame with
   threshold plus the slack; and those whose pseudonormal distance came out inside or undefined),
   every face of the other body that may lie within ``d(p) + slack`` of ``p`` (a conservative
   test: the distance from ``p`` to the face's box and to its plane, both lower bounds of the
-  distance to the face). This walk over a box of half-size ``d(p)`` costs about 5 us for a vertex
-  4 cm away (profiled once), which is why only possible contacts take it.
+  distance to the face). This walk visits a box of half-size ``d(p)``, so its cost grows with the
+  distance: only possible contacts take it (``docs/decisions/0021-contacts-libigl-on-possible-contacts.md``).
 
-``slack`` (default 1e-5 m) is about a hundred times the float32 error of these distances (1.5e-7 m
-at most on a hug's contact frame against libigl). Both bodies are moved by the surface's mean
-before the float32 cast, so that error does not grow with the distance from the world origin (at
-1 km a float32 coordinate alone rounds by 3e-5 m); the float64 signed distances use the unshifted
+``slack`` (default 1e-5 m) is far above the float32 rounding of these distances (about 1e-7 m for
+bodies within a few metres of the origin). Both bodies are moved by the surface's mean before the
+float32 cast, so that rounding does not grow with the distance from the world origin (at 1 km a
+float32 coordinate alone rounds by 3e-5 m); the float64 signed distances use the unshifted
 coordinates, as libigl does. So the faces the gather kernel selects hold libigl's closest face for
 each of its vertices and every face around its closest vertex or edge (each contains the closest
 point, at distance ``d(p)``), which is all that the pseudonormal sign reads: libigl on this
-sub-mesh returns what it returns on the whole mesh (``tests/test_contacts.py`` checks it to 1e-9 m
-against a brute-force query). Vertices left out are farther than the band from the other surface.
+sub-mesh returns what it returns on the whole mesh (``tests/contacts/test_contacts.py`` checks it
+to 1e-9 m against a brute-force query). Vertices left out are farther than the band from the other
+surface.
 
 Kernel launches release the GIL (warp calls them through ctypes), so :meth:`~NearSelector.query_pair`
-runs the two directions of a frame in two threads, and the contact stage runs the next frame's
-:meth:`~NearSelector.query_pair` while libigl finishes the last frame
-(``contacts.compute._compute_frames``, on other selectors). Everything of a direction but
-libigl's call therefore runs in these helper threads, mostly outside the GIL.
+runs the two directions of a frame in two threads, and the contacts stage runs the next frames'
+:meth:`~NearSelector.query_pair` while libigl answers the current one
+(:func:`dualhuman_builder.contacts.frames.compute_frames`, on other selectors). Everything of a
+direction but libigl's call therefore runs in these helper threads, mostly outside the GIL.
+Positions are metres in the world frame; ``benchmarks/bench_contacts.py`` measures the whole path.
 """
 
 from __future__ import annotations
@@ -50,11 +52,9 @@ DEFAULT_SLACK_M = 1e-5
 
 @functools.lru_cache(maxsize=1)
 def _kernels():
-    import warp as wp
+    from dualhuman_builder.warp_runtime import init_warp
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.config.quiet = True
-    wp.init()
+    wp = init_warp()
 
     @wp.func
     def face_normal(Q: wp.array(dtype=wp.vec3d), t: wp.vec3i):
@@ -212,7 +212,7 @@ class Near:
 
     ``idx (n,)`` int64: indices into the query points within ``band + slack`` (metres) of the
     surface; ``face (n,)`` int64: each one's closest face (index into ``faces``); ``dist (n,)``
-    float32: its unsigned distance (within ~1.5e-7 m of the exact one); ``signed (n,)`` float64:
+    float32: its unsigned distance (rounded to float32; see the module docstring); ``signed (n,)`` float64:
     libigl's pseudonormal signed distance on that face (negative inside) where ``dist`` exceeds
     the threshold plus the slack, NaN elsewhere and where the face's edge has not exactly two
     faces; ``exact (m,)`` int64: positions into ``idx`` of the points libigl must answer (``dist``

@@ -21,9 +21,9 @@ build and per-point tree walk:
 stage computes the same rule inside its narrow-phase warp kernel
 (:mod:`dualhuman_builder.geometry.narrow`, float64, for the vertices whose closest face it has just
 found); this module is the readable reference it is tested against.
-``tests/test_pseudonormal.py`` checks value and sign against ``igl.signed_distance`` of the
+``tests/geometry/test_pseudonormal.py`` checks value and sign against ``igl.signed_distance`` of the
 whole mesh on the closest faces libigl reports (a posed anny body, every feature kind), and
-``tests/test_contacts.py`` the contacts built on it against the brute force.
+``tests/contacts/test_contacts.py`` the contacts built on it against the brute force.
 """
 
 from __future__ import annotations

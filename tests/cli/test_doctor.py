@@ -69,7 +69,18 @@ def test_geometry_storage_and_body_model(checks):
     assert by_name(checks, "storage", "sqlite").status == "ok"
     model = by_name(checks, "body model", "anny model")
     assert model.status == "ok" and "13718 vertices" in model.detail and "27420 faces" in model.detail
-    assert by_name(checks, "geometry", "warp").status in ("ok", "warn")
+    warp = by_name(checks, "geometry", "warp")
+    assert warp.status in ("ok", "warn")
+    from dualhuman_builder.kernel_cache import kernel_cache_status
+    from dualhuman_builder.warp_runtime import cuda_driver_problem
+
+    kernels = by_name(checks, "geometry", "warp kernel cache")
+    assert not kernels.required and kernels.status == ("ok" if kernel_cache_status()["built"] else "warn")
+    assert kernels.fix == (None if kernels.status == "ok" else "dualhuman body warm")
+    if cuda_driver_problem() is not None:  # CUDA is reported skipped, with the reason
+        assert warp.status != "ok" or f"(no CUDA: {cuda_driver_problem()})" in warp.detail
+        cuda = by_name(checks, "torch", "cuda")
+        assert cuda.status == "skip" and "no NVIDIA driver" in cuda.detail
 
 
 def test_capture_checks_are_never_required(checks):
