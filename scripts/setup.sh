@@ -45,7 +45,7 @@ fi
 
 stamp="$VENV/.dualhuman-install-stamp"
 want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
-if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import dualhuman_builder, cli" >/dev/null 2>&1; then
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import dualhuman_builder.cli" >/dev/null 2>&1; then
   echo "setup: installing dualhuman-builder with its test extras"
   "$PY" -m pip install -q -e '.[test]'
   echo "$want" > "$stamp"
