@@ -16,6 +16,8 @@ from dualhuman_builder.fit.fitter import FitConfig, FitResult
 
 @dataclass
 class TakeFit:
+    """Everything :func:`process_take` made of one take, step by step."""
+
     sync: object  # SyncResult
     fused: list  # FusedActor per actor
     shapes: dict  # actor -> ShapeCalibration (or a registered shape dict)
@@ -41,6 +43,8 @@ def calibrate_shapes(model, fused: list, known: dict | None = None, statures: di
 
 
 def shape_dict(cal) -> dict:
+    """The phenotype dict of a :class:`~dualhuman_builder.fit.calibrate.ShapeCalibration` (or of a
+    registered shape, already a dict)."""
     return cal if isinstance(cal, dict) else cal.shape
 
 
@@ -50,7 +54,7 @@ def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool 
                  mounts_from=None) -> TakeFit:  # fmt: skip
     """Run the whole path on a take file (or its :func:`read_columns`); the fit on ``workers``
     processes (:func:`~dualhuman_builder.fit.fitter.fit_actors`). ``mounts_from``: the
-    :class:`~dualhuman_builder.sync.timeline.SyncResult` of the session's calibration take, whose
+    :class:`~dualhuman_builder.sync.timeline.SyncResult` of the studio day's calibration take, whose
     tracker mounts carry over (:func:`~dualhuman_builder.sync.timeline.synchronise`)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.capture.log.reader import read_columns

@@ -243,7 +243,7 @@ class BodyRig:
         fingers: each moved finger bone's local rotation is its open-hand rotation with the angle
         scaled by its opening (0 the relaxed rest hand, 1 flat), differentiably."""
         # index_select rather than rot[:, idx]: the same values, and its backward is an index_add,
-        # ~2.4x faster on the CPU than advanced indexing's accumulating index_put (48 frames)
+        # cheaper on the CPU than advanced indexing's accumulating index_put
         rot = seg_rot.index_select(1, self.owner)
         if opening is None:
             return rot
@@ -290,8 +290,7 @@ class BodyRig:
         A_s E_s`` and a skinned vertex ``(sum_k w_k) transl + sum_s A_s G_s``, with ``E``, ``G``
         constant ``(S, 3)`` per bone and vertex (see :meth:`add_linear`): ``(B, 3, 3S) @ (3S, Jn + n)``
         instead of per-bone rotations, a tree walk and a nine-bone blend per vertex (the fitter's
-        skeleton terms read only these: a 48-frame window's energy and gradient, both actors,
-        21 -> 6.6 ms)."""
+        skeleton terms read only these, so its skeleton energy skins no mesh)."""
         mat, wsum, nb = self._linear[name]
         out = linear_pose(seg_rot, transl, mat, wsum)  # (B, Jn + n, 3)
         return out[:, :nb], out[:, nb:]
@@ -345,10 +344,9 @@ class BodyRig:
         """Every vertex ``(B, V, 3)`` for bone rotations ``rot (B, J, 3, 3)`` and heads ``heads (B, J,
         3)``, without gradient: the linear blend ``v = sum_k w_vk (A_k u_vk + h_k)`` over each vertex's
         nonzero weights only (2.5 of anny's 9 slots on average; :func:`_skin_nonzero`, one warp CPU
-        kernel). anny's own kernel reads all nine slots through 4x4 transforms: 37 -> 20 ms for 48
-        frames of one body here (2-core x86 CPU; a script outside the repo), the same vertices to
-        float rounding (2.4e-7 m). The fit skins its full meshes without gradient only (to find the
-        contacts, to measure depths), so that is where this runs."""
+        kernel), where anny's own kernel reads all nine slots through 4x4 transforms: the same
+        vertices to float rounding, in fewer operations. The fit skins its full meshes without
+        gradient only (to find the contacts, to measure depths), so that is where this runs."""
         B, V = rot.shape[0], self.num_vertices
         out = torch.empty(B, V, 3, dtype=torch.float32)
         if B == 0:
@@ -383,8 +381,8 @@ class BodyRig:
 
     def _skin_at_torch(self, posed: Posed, frames: torch.Tensor, vertex_ids: torch.Tensor) -> torch.Tensor:
         """:meth:`skin_at` in tensor operations, on any device and dtype: the bones as rows of one table
-        (``index_select``, whose backward adds rows; a held collision pass's evaluation ~37 -> ~27 ms
-        against a 4-D gather on the fit benchmark's hug, one profiled run, script outside the repo)."""
+        (``index_select``, whose backward adds rows: cheaper than a 4-D gather, whose backward
+        scatters)."""
         first = self._nz_ptr[vertex_ids]
         n = self._nz_ptr[vertex_ids + 1] - first  # nonzero weights of each vertex
         which = torch.repeat_interleave(torch.arange(len(vertex_ids), device=self.device), n)  # (N,) pair -> point
@@ -423,8 +421,7 @@ def linear_pose(seg_rot: torch.Tensor, transl: torch.Tensor, mat: torch.Tensor, 
     if len(lead) >= 2 and mat.dim() == x.dim() and mat.shape[-3] == 1:
         # a stack of rigs with a frame axis of 1: the frames folded into the rows, one (3n, 3S) @ (3S, N)
         # product per rig, instead of broadcasting `mat` to every frame (a copy of it per frame and
-        # evaluation, and 3 x 3S @ 3S x N products: ~1.4 ms of a hug window's ~23 ms collision
-        # evaluation on 2026-11-27, torch's profiler)
+        # evaluation, and many 3 x 3S @ 3S x N products)
         y = (x.reshape(*lead[:-1], lead[-1] * 3, x.shape[-1]) @ mat.squeeze(-3)).reshape(*lead, 3, -1)
     else:
         y = x @ mat
@@ -485,9 +482,8 @@ def _skin_pairs_grad(grad: wp.array(dtype=wp.vec3), frames: wp.array(dtype=wp.in
 class _SkinAt(torch.autograd.Function):
     """:meth:`BodyRig.skin_at` on the CPU in float32 as two warp kernels (forward and backward) instead of
     ~10 tensor operations over every (point, weight) pair and their backward: a collision pass's
-    evaluation reads ~5,000-50,000 points, and the pairs' gathers and scatters were most of its cost
-    (``benchmarks/bench_skin_at.py``, 30 frames with the bones' posing, forward and backward: 50,000
-    points 26.1 -> 7.7 ms, 5,000 points 5.3 -> 4.1 ms; 2026-11-26, 2-core x86 CPU).
+    evaluation reads ~5,000-50,000 points, whose gathers and scatters as tensor operations would be
+    most of its cost (``benchmarks/bench_skin_at.py`` times both; docs/decisions/0020-collision-term-cost.md).
     A CPU launch runs its points in order, so the gradient's sums are the same from run to run (the rig
     test backs both)."""
 
@@ -540,8 +536,7 @@ TORSO_BONES = ("root", "pelvis", "spine")
 def torso_vertices(model) -> np.ndarray:
     """``(n,)`` indices of anny's vertices skinned mostly to the root, pelvis and spine bones (~1,400
     of 13,718). Their centroid is where the body is: unlike the whole body's, it does not move when
-    the arms wrap round a partner (two actors' stayed >= 24.6 cm apart in the simulated scenes, hugs
-    included, while their whole-body centroids came within 1.2 cm). The collision term's coincidence
-    guard compares them."""
+    the arms wrap round a partner, so two actors' torso centroids stay far apart in a close hug. The
+    collision term's coincidence guard compares them (docs/decisions/0014-hand-openings-and-torso-guard.md)."""
     bones = [i for i, n in enumerate(model.bone_names) if n.startswith(TORSO_BONES)]
     return np.flatnonzero(np.isin(model.vertex_bone(), bones))

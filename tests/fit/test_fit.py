@@ -275,8 +275,8 @@ def test_sync_warns_when_the_heading_or_the_root_is_uncertain(recorded, monkeypa
     assert offset_warnings(synchronise(columns, fps=15.0).report) == []
 
 
-def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, model, tmp_path):
-    """``dualhuman sync WS --take T --mounts-from CAL``: the session's calibration take (the same
+def test_a_calibration_takes_mounts_carry_over_to_later_takes(recorded, model, tmp_path):
+    """``dualhuman sync WS --take T --mounts-from CAL``: the studio day's calibration take (the same
     simulated devices, seed 1) is synced first, and every tracker of the handshake keeps the mount
     solved there. The handshake's actors hardly turn a segment, so their heading and the trackers'
     shared offset otherwise rest on the sites' prior (~14 mm); carried, the shared offset is known
@@ -322,7 +322,7 @@ def test_a_calibration_takes_mounts_carry_over_to_the_sessions_takes(recorded, m
     alone = synchronise(read_columns(take), fps=15.0).report["common_offset"]
     assert all(alone[n]["std_mm"] > 2 * report["common_offset"][n]["std_mm"] for n in alone), alone
     assert not any("shared offset" in w for w in report.get("warnings", [])), report["warnings"]  # pinned by CAL
-    # the trackers' lag behind the suits (a session's latencies) is averaged with the calibration's
+    # the trackers' lag behind the suits (a studio day's latencies) is averaged with the calibration's
     key = next(k for k in report["lags"] if k.startswith("source:"))
     lag = report["lags"][key]
     assert lag["carried_from"] == "CAL" and lag["latency_changed"] is False, lag
@@ -391,7 +391,7 @@ def _script_checks(monkeypatch, script) -> list:
     ``script(n, keys, out)`` (``n``: 1 for the first check, ``keys`` its frames as ints, ``out`` the real
     reading) returns the entries of ``out`` to read instead (``max_depth_m``, ``share``), or None.
     Returns the list, filled as the fit runs, of each check's keys."""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     real = collision.CollisionTerm.penetration
     checks = []
@@ -423,7 +423,7 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch, hands):
     """Two bodies on one spot: the collision passes run (the hands' first, when the fit may open
     them). If the loss turns non-finite, the line search steps to NaN corrections; the fitter undoes
     the pass and reports it, never returning NaN bodies or crashing."""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 4
     inputs = _overlapping_pair(T)
@@ -452,9 +452,9 @@ def test_a_collision_pass_that_diverges_is_undone(model, monkeypatch, hands):
 def test_a_collision_pass_that_deepens_the_overlap_is_undone(model, monkeypatch):
     """A pass after which the window's deepest frame is deeper than the best before it is undone
     and reported; the next round starts again from the best answer, with the term weighted up.
-    (Seen on a take whose trackers pull the bodies into each other; here the depth read after the
+    (As on a take whose trackers pull the bodies into each other; here the depth read after the
     first pass is read as 10 mm deeper than before it.)"""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 2
     inputs = _overlapping_pair(T)
@@ -496,7 +496,7 @@ def test_frames_the_full_rounds_start_deep_are_weighted_a_step_ahead(model, monk
     gradient of the fit's energy with respect to each frame's collision loss: the weight that frame
     pays. Here the checks after the skeleton pass and after round 1 read frame 0 as 15 mm deep and
     frame 1 as 5 mm."""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 2
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=2, hand_opening=False,
@@ -531,7 +531,7 @@ def test_a_round_moves_only_the_frames_left_over_a_tolerance_and_their_neighbour
     collision term is evaluated on them, the check after the round measures only the frames it moved,
     and they keep their corrections exactly. Here the checks read every frame 15 mm deep after the
     skeleton pass, only frame 6 of 8 over the tolerance after round 1, and nothing after round 2."""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 8
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=3, hand_opening=False,
@@ -575,8 +575,7 @@ def test_a_window_left_within_the_tolerances_when_a_pass_is_undone_stops_there(m
     """The skeleton pass leaves shallow contacts only (1 mm, within the 2 mm tolerance), so the
     window gets its passes; the first leaves it deeper (read as 1.5 mm) and is undone. The best
     answer, the skeleton pass's, is then within the tolerances: the rounds stop there, with nothing
-    to move (a handshake of the accuracy benchmark's seed 4 went on to a round of no frames and
-    failed: "verts_a is empty")."""
+    to move (not on to a round of no frames, which the collision term rejects)."""
     T = 6
     cfg = FitConfig(window=T, overlap=0, iterations=3, collision_iterations=2, collision_rounds=3, hand_opening=False,
                     collision_hold_contacts=False, collision_hold_settled=True)  # fmt: skip
@@ -620,7 +619,7 @@ def test_held_contacts_settle_a_window_and_a_stall_locates_its_deep_frames_exact
     pass with those frames and the ones left too deep exact, the rest held; where that is every frame
     (the held term pushing nothing anywhere) it gives the same bodies as a fit that never holds the
     contacts. Stalled rounds, exact frames and refitted windows are listed."""
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 2
     inputs = _overlapping_pair(T, dx=0.17)  # arms through the partner, 37 mm deep
@@ -697,7 +696,7 @@ def test_held_rounds_that_settle_after_a_stall_with_the_shape_bent_are_fitted_ag
     then settles at a ratio over 1e-9 but under 2."""
     import re
 
-    from dualhuman_builder.fit import collision
+    from dualhuman_builder.geometry import collision
 
     T = 2
     inputs = _overlapping_pair(T, dx=0.17)
@@ -732,9 +731,8 @@ def test_held_rounds_that_settle_after_a_stall_with_the_shape_bent_are_fitted_ag
 def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch):
     """The depths a fit reports after the collision term are those of the bodies it returns, frame by
     frame (measured again here on anny's own meshes), though the end of a segment measures only the
-    frames no check measured at their final corrections (here: none; before 2026-11-26 it measured
-    every frame again)."""
-    from dualhuman_builder.fit import fitter as fitter_module
+    frames no check measured at their final corrections (here: none)."""
+    from dualhuman_builder.fit.problem import FitProblem
     from dualhuman_builder.geometry.collision import CollisionTerm
     from dualhuman_builder.fit.skeleton import torso_vertices
 
@@ -742,13 +740,13 @@ def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch
     inputs = _overlapping_pair(T, dx=0.17)  # arms through the partner
     cfg = FitConfig(window=8, overlap=2, segment_windows=0, iterations=3, collision_iterations=2, collision_rounds=1)
     measured = []
-    real = fitter_module._Fitter.depths
+    real = FitProblem.depths
 
     def count(self, s0, s1, *a, **k):
         measured.append((s0, s1))
         return real(self, s0, s1, *a, **k)
 
-    monkeypatch.setattr(fitter_module._Fitter, "depths", count)
+    monkeypatch.setattr(FitProblem, "depths", count)
     res = fit_actors(model, inputs, 15.0, cfg, workers=1)
     got = res.frames["penetration depth (mm)/with collision term"]
     assert res.summary["collision_frames"] >= T and measured == []
@@ -764,7 +762,8 @@ def test_the_collision_passes_move_only_the_frames_around_the_contacts(model):
     frames collide. The collision passes move the frames within ``collision_span_s`` of them (0.3 s:
     5 frames at 15 fps) and keep the rest of the window as the skeleton pass left it, bit for bit the
     bodies of a fit without the collision term; with ``collision_span_s=0`` the whole window moves."""
-    from dualhuman_builder.fit.fitter import _context_join, _span
+    from dualhuman_builder.fit.collision_rounds import span_rows
+    from dualhuman_builder.fit.energy import join_contexts
 
     T, fps = 40, 15.0
     inputs = _overlapping_pair(T, dx=0.0)
@@ -777,7 +776,7 @@ def test_the_collision_passes_move_only_the_frames_around_the_contacts(model):
     on = fit_actors(model, inputs, fps, cfg)
     hit = np.flatnonzero(on.frames["penetration depth (mm)/without collision term"] > 0)
     assert len(hit) and hit[0] > 8 and hit[-1] < T - 9  # a few frames in the middle collide
-    r0, r1 = _span(hit, T, cfg, fps)
+    r0, r1 = span_rows(hit, T, cfg, fps)
     assert (r0, r1) == (hit[0] - 5, hit[-1] + 6)
     outside = np.r_[0:r0, r1:T]
     for a, b in zip(on.sequence.actors, off.sequence.actors):
@@ -790,20 +789,20 @@ def test_the_collision_passes_move_only_the_frames_around_the_contacts(model):
              for a, b in zip(whole.sequence.actors, off.sequence.actors)]  # fmt: skip
     assert max(moved) > 0
     # the span's rows at the window's edges, and the contexts it reads around it
-    assert _span(np.array([1, 2]), 48, cfg, fps) == (0, 8) and _span(np.array([46]), 48, cfg, fps) == (41, 48)
-    assert _span(np.array([], np.int64), 48, cfg, fps) == (0, 48)
+    assert span_rows(np.array([1, 2]), 48, cfg, fps) == (0, 8) and span_rows(np.array([46]), 48, cfg, fps) == (41, 48)
+    assert span_rows(np.array([], np.int64), 48, cfg, fps) == (0, 48)
     ctx = tuple(torch.full((n, 3), float(v)) for n, v in ((1, 1), (1, 1), (1, 1)))
     rows = tuple(torch.arange(3.0)[:, None].repeat(1, 3) + 10 for _ in range(3))
-    assert _context_join(ctx, rows, last=True)[0][:, 0].tolist() == [11.0, 12.0]
-    assert _context_join(rows, ctx, last=False)[0][:, 0].tolist() == [10.0, 11.0]
-    assert _context_join(None, ctx, last=True)[0].shape == (1, 3) and _context_join(None, None, last=False) is None
+    assert join_contexts(ctx, rows, last=True)[0][:, 0].tolist() == [11.0, 12.0]
+    assert join_contexts(rows, ctx, last=False)[0][:, 0].tolist() == [10.0, 11.0]
+    assert join_contexts(None, ctx, last=True)[0].shape == (1, 3) and join_contexts(None, None, last=False) is None
 
 
 def test_stuck_frames_restart_from_their_neighbours():
     """A run of stuck frames inside the window is set to the straight line between the frames around
     it (every parameter tensor), one at the window's edge to its one neighbour; frames outside the
     runs are untouched; a window stuck everywhere has nothing to start from."""
-    from dualhuman_builder.fit.fitter import _restart_from_neighbours
+    from dualhuman_builder.fit.collision_rounds import restart_from_neighbours
 
     W = 10
     delta = torch.arange(W, dtype=torch.float32)[:, None, None].repeat(1, 23, 3) ** 2  # (W, 23, 3)
@@ -811,14 +810,14 @@ def test_stuck_frames_restart_from_their_neighbours():
     params = [delta.clone(), opening.clone()]
     stuck = np.zeros(W, bool)
     stuck[[0, 1, 4, 5, 6]] = True
-    assert _restart_from_neighbours(params, stuck)
+    assert restart_from_neighbours(params, stuck)
     d = params[0][:, 0, 0]
     # frames 4-6 between frame 3 (9) and frame 7 (49): 19, 29, 39; frames 0-1 copy frame 2 (4)
     np.testing.assert_allclose(d.numpy(), [4, 4, 4, 9, 19, 29, 39, 49, 64, 81], rtol=1e-6)
     np.testing.assert_allclose(params[1][:, 2].numpy(), [-2, -2, -2, -3, -4, -5, -6, -7, -8, -9], rtol=1e-6)
     assert torch.equal(params[0][:, 5], params[0][:, 0])  # every element of a frame moves alike
     frozen = [delta.clone()]
-    assert not _restart_from_neighbours(frozen, np.ones(W, bool)) and torch.equal(frozen[0], delta)
+    assert not restart_from_neighbours(frozen, np.ones(W, bool)) and torch.equal(frozen[0], delta)
 
 
 def test_a_foot_in_stance_stands_on_the_floor(model):
@@ -909,13 +908,13 @@ def test_the_take_is_cut_into_windows_and_segments_that_cover_it(window, overlap
 
 
 def test_segments_are_cross_faded_over_the_frames_they_share():
-    from dualhuman_builder.fit.fitter import _join, _Part
+    from dualhuman_builder.fit.layout import SegmentAnswer, cross_fade
 
     def part(start, n, value):
         full = lambda *s: np.full((n,) + s, value, np.float32)  # noqa: E731
-        return _Part(start, [full(23, 3)], [full(3)], [full(4)], np.full(n, value), np.full(n, value))
+        return SegmentAnswer(start, [full(23, 3)], [full(3)], [full(4)], np.full(n, value), np.full(n, value))
 
-    j = _join([part(0, 6, 0.0), part(2, 6, 1.0), part(7, 3, 3.0)], 10)
+    j = cross_fade([part(0, 6, 0.0), part(2, 6, 1.0), part(7, 3, 3.0)], 10)
     want = np.array([0, 0, 0.2, 0.4, 0.6, 0.8, 1, 1 + 2 / 2, 3, 3])
     for key in ("delta", "dtransl", "opening"):
         assert j[key][0].shape[0] == 10 and j[key][0].dtype == np.float32
@@ -929,17 +928,19 @@ def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(mode
     fitted again from the blend, over the shared frames and ``overlap`` more on each side, with the
     frames around it fixed: afterwards no frame is deeper than the tolerance, and the frames outside
     that window are untouched."""
-    from dualhuman_builder.fit.fitter import _apply_seams, _Fitter, _join, _Part, _seam
+    from dualhuman_builder.fit.layout import SegmentAnswer, cross_fade
+    from dualhuman_builder.fit.seams import apply_seams, fit_seam
+    from dualhuman_builder.fit.segment import SegmentFitter
 
     T = 12
     cfg = FitConfig(window=4, overlap=1, iterations=3, collision_iterations=4, hand_opening=False)
-    fitter = _Fitter(model, _overlapping_pair(T, dx=0.5), 15.0, cfg)
+    fitter = SegmentFitter(model, _overlapping_pair(T, dx=0.5), 15.0, cfg)
 
     def part(start, n, bx):
         z = lambda *s: np.zeros((n,) + s, np.float32)  # noqa: E731
         bt = z(3)
         bt[:, 0] = bx
-        return _Part(start, [z(23, 3), z(23, 3)], [z(3), bt], [z(4), z(4)], np.zeros(n), np.zeros(n))
+        return SegmentAnswer(start, [z(23, 3), z(23, 3)], [z(3), bt], [z(4), z(4)], np.zeros(n), np.zeros(n))
 
     def depths(j):
         vs = [a.pose(*(torch.as_tensor(j[key][k]) for key in ("delta", "dtransl")), slice(0, T), True,
@@ -947,14 +948,14 @@ def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(mode
         return fitter.collide.penetration(vs[0], vs[1])["max_depth_m"]
 
     parts = [part(0, 7, 0.0), part(5, 7, -0.8)]  # shared: frames 5, 6
-    j = _join(parts, T)
+    j = cross_fade(parts, T)
     before = {key: [x.copy() for x in j[key]] for key in ("delta", "dtransl", "opening")}
     d = depths(j)
     assert d[[0, 1, 2, 3, 4, 7, 8, 9, 10, 11]].max() == 0 and d[5:7].max() > 0.02  # the blend: b through a
     said = []
-    seam = _seam(fitter, parts[0], parts[1], said.append)
+    seam = fit_seam(fitter, parts[0], parts[1], said.append)
     assert (seam.b0, seam.e) == (5, 7) and seam.depth.max() > 0.02 and seam.fixed is not None
-    assert _apply_seams(j, [seam]) == ["frames 4-7"]
+    assert apply_seams(j, [seam]) == ["frames 4-7"]
     np.testing.assert_array_equal(j["pen_after"][4:8], seam.fixed.pen_after)
     assert any("seam frames 5-6" in m and "mm deep after the cross-fade" in m for m in said), said
     assert depths(j).max() <= cfg.collision_tolerance_m
@@ -982,20 +983,23 @@ def test_the_collision_term_shares_the_cpus_among_the_fits_processes(model):
     """Each of a fit's processes gives its collision term the CPUs shared out among them (at least one,
     at most eight): two processes on two CPUs run one query thread each, not two that wait on each
     other."""
-    from dualhuman_builder.fit.fitter import _Fitter, collision_threads
+    from dualhuman_builder.fit.fitter import collision_threads
+    from dualhuman_builder.fit.segment import SegmentFitter
 
     assert [collision_threads(p, cpus=2) for p in (1, 2, 3)] == [2, 1, 1]
     assert collision_threads(1, cpus=16) == 8 and collision_threads(4, cpus=16) == 4
     cfg = FitConfig(window=4)
-    assert _Fitter(model, _overlapping_pair(4), 15.0, cfg, threads=1).collide.threads == 1
+    assert SegmentFitter(model, _overlapping_pair(4), 15.0, cfg, threads=1).collide.threads == 1
 
 
 def test_both_actors_skeleton_energy_at_once_is_the_sum_of_each_alone(model):
-    """The skeleton terms of both actors are evaluated as one stack (:class:`_Stack`, trackers padded to
+    """The skeleton terms of both actors are evaluated as one stack (:class:`ActorStack`, trackers padded to
     the most either has): energy and gradient equal the sum of each actor evaluated alone, here with
     six trackers on one actor and three (one of them missing every third frame) on the other, with
     fixed context frames on both sides."""
-    from dualhuman_builder.fit.fitter import _context, _energy, _Fitter, _Stack, _stacked
+    from dualhuman_builder.fit.actors import ActorStack
+    from dualhuman_builder.fit.energy import context_of, skeleton_energy, stack_contexts
+    from dualhuman_builder.fit.segment import SegmentFitter
 
     T = 12
     inputs = _overlapping_pair(T, dx=0.6)
@@ -1007,17 +1011,17 @@ def test_both_actors_skeleton_energy_at_once_is_the_sum_of_each_alone(model):
         inp.trk_offset = rng.normal(0, 0.05, (K, 3))
     inputs[1].trk_valid[::3, 1] = False
     cfg = FitConfig()
-    fitter = _Fitter(model, inputs, 15.0, cfg)
+    fitter = SegmentFitter(model, inputs, 15.0, cfg)
     assert fitter.stack.K == 6
     torch.manual_seed(0)
     sl, n = slice(3, 9), 6
     ps = [[(0.1 * torch.randn(n, *shape)).requires_grad_() for shape in ((23, 3), (3,), (4,))] for _ in range(2)]
     with torch.no_grad():
-        ctx, after = ([_context(a, 0.1 * torch.randn(2, 23, 3), torch.zeros(2, 3), torch.full((2, 4), 0.2), s)
+        ctx, after = ([context_of(a, 0.1 * torch.randn(2, 23, 3), torch.zeros(2, 3), torch.full((2, 4), 0.2), s)
                        for a in fitter.acts] for s in (slice(1, 3), slice(9, 11)))  # fmt: skip
-    both, rot = _energy(fitter.stack, *(torch.stack([p[j] for p in ps]) for j in range(3)), sl, _stacked(ctx), cfg, 15.0,
-                        _stacked(after))  # fmt: skip
-    alone = [_energy(_Stack([a]), *(p[j][None] for j in range(3)), sl, _stacked([c]), cfg, 15.0, _stacked([f]))[0]
+    both, rot = skeleton_energy(fitter.stack, *(torch.stack([p[j] for p in ps]) for j in range(3)), sl, stack_contexts(ctx), cfg, 15.0,
+                        stack_contexts(after))  # fmt: skip
+    alone = [skeleton_energy(ActorStack([a]), *(p[j][None] for j in range(3)), sl, stack_contexts([c]), cfg, 15.0, stack_contexts([f]))[0]
              for a, p, c, f in zip(fitter.acts, ps, ctx, after)]  # fmt: skip
     assert rot.shape == (2, n, 23, 3, 3) and alone[0] > 0 and alone[1] > 0
     assert float(both.detach()) == pytest.approx(float((alone[0] + alone[1]).detach()), rel=1e-5)
