@@ -19,21 +19,22 @@ from dualhuman_builder.rig import Rig, RigActor, RigSource
 
 
 class LoopbackStudio:
-    """Open the loopback sources, start the players. ``sources``: ``[(name, Source)]`` to
-    record; ``actors``: the rig's actors; :meth:`finished` is True once every player is done
-    (plus ``grace_s`` so the last datagrams are read). ``speed``: playback multiple of real
-    time; ``faults``: :class:`~dualhuman_builder.sim.devices.Faults` for every player."""
+    """Open the loopback sources, start the players of ``studio`` (the
+    :class:`~dualhuman_builder.sim.studio.SimStudio` of ``scene``; ``url`` names them, as
+    :meth:`dualhuman_builder.sim.source.SimSource.loopback_studio` opens them). ``sources``:
+    ``[(name, Source)]`` to record; ``actors``: the rig's actors; :meth:`finished` is True once
+    every player is done (plus ``grace_s`` so the last datagrams are read). ``speed``: playback
+    multiple of real time; ``faults``: :class:`~dualhuman_builder.sim.devices.Faults` for every player."""
 
-    def __init__(self, url: str, *, speed: float = 1.0, faults=None, progress: Callable[[str], None] | None = None,
-                 grace_s: float = 0.3, xbus: bool = True, can_bus: bool = True):  # fmt: skip
-        from dualhuman_builder.sim.source import SimSource
+    def __init__(self, url: str, scene, studio, *, speed: float = 1.0, faults=None,
+                 progress: Callable[[str], None] | None = None, grace_s: float = 0.3, xbus: bool = True,
+                 can_bus: bool = True):  # fmt: skip
         from dualhuman_builder.resources import RIGS_DIR
         from dualhuman_builder.rig import load_rig
         from dualhuman_builder.sim.play import play_studio
 
-        sim = SimSource(url, progress=progress)
         self.url = url
-        self.scene, self.studio = sim.scene, sim.studio
+        self.scene, self.studio = scene, studio
         self.rig: Rig = load_rig(RIGS_DIR / "sim.toml")
         self.grace_s = grace_s
         self.sources: list[tuple[str, Source]] = []

@@ -38,7 +38,8 @@ class SimSource(Source):
         :class:`~dualhuman_builder.sim.loopback.LoopbackStudio`."""
         from dualhuman_builder.sim.loopback import LoopbackStudio
 
-        return LoopbackStudio(url, speed=speed, faults=faults, progress=progress)
+        sim = cls(url, progress=progress)
+        return LoopbackStudio(url, sim.scene, sim.studio, speed=speed, faults=faults, progress=progress)
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
         from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene

@@ -54,3 +54,20 @@ def test_every_package_is_listed_for_the_wheel():
     found = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "dualhuman_builder").rglob("__init__.py")}
     found |= {"dualhuman_builder.rigs", "dualhuman_builder.render_templates"}
     assert listed == found, f"missing: {sorted(found - listed)}; stale: {sorted(listed - found)}"
+
+
+def test_no_import_cycles():
+    """No import cycle between the package's modules, counting imports inside functions too (a
+    cycle hidden in a function still ties two modules' designs together)."""
+    import grimp
+
+    graph = grimp.build_graph("dualhuman_builder")
+    cycles = []
+    for m in sorted(graph.modules):
+        for other in graph.find_modules_directly_imported_by(m):
+            if other == m:
+                continue
+            chain = graph.find_shortest_chain(importer=other, imported=m)
+            if chain:
+                cycles.append(" -> ".join((m, *chain)))
+    assert not cycles, "import cycles:\n" + "\n".join(cycles[:10])
