@@ -131,7 +131,7 @@ class Clips:
 
     def items(self, render_dirs: dict | None = None) -> list:
         """Fresh ExportItems (new tracks every call)."""
-        from dualhuman_builder.export.layout import ExportItem
+        from dualhuman_builder.export.items import ExportItem
 
         out = []
         for i, (sid, name, start) in enumerate(self.specs):
@@ -182,7 +182,7 @@ def export_size(out: Path, manifest: dict) -> int:
 def timed_export(make_items, out: Path) -> tuple[float, float, int, dict, str]:
     """One ``export_dataset`` run: ``(seconds, CPU seconds (all threads), bytes written by this
     process, manifest, last progress line)``."""
-    from dualhuman_builder.export.layout import export_dataset
+    from dualhuman_builder.export.writer import export_dataset
 
     items = make_items()  # built outside the timed region
     lines: list[str] = []
@@ -397,7 +397,7 @@ def main(argv=None) -> None:
         cache.mkdir(parents=True, exist_ok=True)
 
     from dualhuman_builder.evaluation.contacts import contacts_for_scene
-    from dualhuman_builder.export.layout import export_dataset
+    from dualhuman_builder.export.writer import export_dataset
 
     load0 = os.getloadavg()[0]
     scenes, prep = {}, {}

@@ -80,7 +80,7 @@ def test_npz_never_unpickles(tmp_path):
 
 def test_corrupt_deflate_streams_are_format_errors_not_zlib_errors(tmp_path):
     """A flipped byte inside a compressed member fails in zlib (not zipfile): still a clear error."""
-    from dualhuman_builder.export.layout import read_npz, npz_bytes
+    from dualhuman_builder.export.files import npz_bytes, read_npz
 
     good = npz_bytes({"x": np.sin(np.arange(4000.0)).astype(np.float32)})  # the export's compressed writer
     save_npz(tmp_path / "c.npz", "Thing", 1, {"x": np.zeros(2)})

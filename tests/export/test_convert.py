@@ -22,7 +22,9 @@ from dualhuman_builder.export.convert import (
 )
 from dualhuman_builder.export.features import canonicalize, feature_stats, motion_features, recover_joints, resample_joints
 from dualhuman_builder.export.interhuman import PairTransform, interhuman_features, recover_interhuman
-from dualhuman_builder.export.layout import ExportItem, export_dataset, load_motion
+from dualhuman_builder.export.files import load_motion
+from dualhuman_builder.export.items import ExportItem
+from dualhuman_builder.export.writer import export_dataset
 from dualhuman_builder.tracks import BodyTrack, InteractionSequence
 
 FPS = 10.0

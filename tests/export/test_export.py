@@ -16,7 +16,10 @@ from PIL import Image
 
 from dualhuman_builder import __version__
 from dualhuman_builder.export.features import FEATURE_SCHEMA, feature_stats, mirror_features, mirror_text, motion_features
-from dualhuman_builder.export.layout import ExportItem, export_dataset, load_contacts, load_motion, make_splits
+from dualhuman_builder.export.files import load_contacts, load_motion
+from dualhuman_builder.export.items import ExportItem
+from dualhuman_builder.export.splits import make_splits
+from dualhuman_builder.export.writer import export_dataset
 from dualhuman_builder.export.loader import MotionWindows, ShardWindows
 from dualhuman_builder.export.shards import decode_sample, iter_shards, write_shards
 from dualhuman_builder.export.verify import verify_export
@@ -194,7 +197,7 @@ def test_verify_passes_and_catches_damage(exported, tmp_path):
 def test_verify_checks_schema_and_nan(exported, tmp_path):
     import hashlib
 
-    from dualhuman_builder.export.layout import npz_bytes
+    from dualhuman_builder.export.files import npz_bytes
 
     out = _copy(exported, tmp_path)
     manifest = json.loads((out / "manifest.json").read_text())
