@@ -23,6 +23,10 @@ Metadata records: ``take`` (name, sources, actor bindings, wall-clock and monoto
 host clock maps to UTC), ``rig`` (the rig file's text), ``software`` (toolkit and library
 versions), and at the end ``stats`` (final counters).
 
+The file is written with the ``mcap`` library's public ``mcap.writer.Writer`` (``mcap>=1.5``, for
+``Writer.flush``), which keeps up with the studio's message rate many times over
+(``benchmarks/probes/probe_mcap_writer.py`` measures it; ``docs/decisions/0026-mcap-public-writer.md``).
+
 Crash safety: messages collect in a chunk (LZ4) that is written when it reaches ``chunk_size``
 bytes or ``flush_s`` seconds, whichever comes first, and the file is ``fsync``-ed then. A
 ``kill -9`` or power loss loses at most the chunk in progress; the file stays readable up to it
@@ -40,10 +44,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-from mcap.writer import CompressionType
+from mcap.writer import CompressionType, Writer
 
 from dualhuman_builder.capture.log import schemas
-from dualhuman_builder.capture.log.mcapio import FastWriter
 from dualhuman_builder.capture.sources import RawPacket, SourceEvent
 from dualhuman_builder.errors import DualhumanError
 
@@ -194,7 +197,7 @@ class TakeWriter:
         self.closed = False
         self.failed: BaseException | None = None
         self.messages = 0
-        self._w = FastWriter(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
+        self._w = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
         self._guard(self._w.start, PROFILE, "dualhuman_builder")
         self._raw_channels = [
             self._w.register_channel(f"raw/{name}", RAW_ENCODING, 0, {"url": url, "kind": kind, "source": name})
