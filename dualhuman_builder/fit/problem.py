@@ -73,7 +73,7 @@ class FitProblem:
         # The collision term (docs/design/fit-collision.md, docs/decisions/0020-collision-term-cost.md):
         # - a 3 cm band of exact signed distances (the broad-phase boxes grow by 1 cm): the same depths as
         #   a narrower band, but signs stay known over larger moves between L-BFGS evaluations
-        #   (benchmarks/bench_fit_collision.py compares bands);
+        #   (benchmarks/probes/probe_collision_band.py compares bands);
         # - the coincidence guard compares the torsos' centroids (docs/decisions/0014-hand-openings-and-torso-guard.md);
         # - the sign bound's parts are each hand's fingers and the rest, so the hands' pass, which moves
         #   the fingers alone, keeps the signs elsewhere;

@@ -483,7 +483,7 @@ class _SkinAt(torch.autograd.Function):
     """:meth:`BodyRig.skin_at` on the CPU in float32 as two warp kernels (forward and backward) instead of
     ~10 tensor operations over every (point, weight) pair and their backward: a collision pass's
     evaluation reads ~5,000-50,000 points, whose gathers and scatters as tensor operations would be
-    most of its cost (``benchmarks/bench_skin_at.py`` times both; docs/decisions/0020-collision-term-cost.md).
+    most of its cost (``benchmarks/probes/probe_skin_at.py`` times both; docs/decisions/0020-collision-term-cost.md).
     A CPU launch runs its points in order, so the gradient's sums are the same from run to run (the rig
     test backs both)."""
 

@@ -210,6 +210,7 @@ def test_regions_file_errors(tmp_path, body_model):
         load_regions(body_model, p)
 
 
+@pytest.mark.slow
 def test_shape_for_stature(body_model):
     for height, gender in ((1.68, "female"), (1.82, "male"), (1.55, "neutral")):
         shape = shape_for_stature(body_model, height, gender)

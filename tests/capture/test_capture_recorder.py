@@ -51,6 +51,7 @@ def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flus
     return result, report, statuses, stream
 
 
+@pytest.mark.slow
 def test_record_replay_bit_identical_and_back_on_the_wire(tmp_path):
     path = tmp_path / "T1.mcap"
     result, report, statuses, stream = record_trackers(path)
@@ -107,6 +108,7 @@ def test_replay_at_recorded_timing(tmp_path):
     assert elapsed >= 0.95 * recorded  # paced, not dumped
 
 
+@pytest.mark.slow
 def test_faults_are_counted_and_recorded(tmp_path):
     path = tmp_path / "T1.mcap"
     result, report, _, _ = record_trackers(path, faults=Faults(seed=3, loss=0.05, duplicate=0.05))
@@ -135,6 +137,7 @@ _DISK_FULL = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_disk_full_mid_take_stops_cleanly_and_keeps_the_data(tmp_path):
     path = tmp_path / "full.mcap"
     out = subprocess.run([sys.executable, "-c", _DISK_FULL.format(tests=str(ROOT / "tests" / "capture"), path=str(path))],
@@ -164,6 +167,7 @@ def _orphans(parent_pid: int) -> list[int]:
     return out
 
 
+@pytest.mark.slow
 def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
     """`dualhuman capture` recording a sender that never stops is killed with SIGKILL; the take
     holds everything up to its last flushed chunk and repairs to a complete file."""
@@ -206,6 +210,7 @@ def test_kill_minus_9_of_the_capture_command_leaves_a_readable_take(tmp_path):
     assert check_take(path).ok
 
 
+@pytest.mark.slow
 def test_cli_capture_into_a_workspace_then_replay_and_dump(tmp_path):
     """`dualhuman capture --source ... -w WS` records, registers the take with its checksum and
     counts; `replay --verify` and `log dump --jsonl` read it back."""

@@ -232,6 +232,7 @@ def test_mvnx_not_an_mvnx_file(tmp_path):
         read_mvnx(tmp_path / "missing.mvnx")
 
 
+@pytest.mark.slow
 def test_mvnx_reading_streams_in_flat_memory(tmp_path, suit):
     """What parsing holds beyond its preallocated output (sampled after every chunk) stays the
     same for a 2x longer file, and is a small part of what the whole tree (``ET.parse``) takes.

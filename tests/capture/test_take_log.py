@@ -179,6 +179,7 @@ _WRITER_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_kill_minus_9_keeps_every_flushed_chunk_and_repair_rebuilds_the_index(tmp_path):
     path = tmp_path / "crash.mcap"
     script = _WRITER_SCRIPT.format(tests=str(ROOT / "tests" / "capture"), path=str(path))
@@ -235,6 +236,7 @@ _FULL_DISK_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_a_full_disk_stops_writing_with_a_clear_error_and_keeps_what_was_written(tmp_path):
     path = tmp_path / "full.mcap"
     out = subprocess.run([sys.executable, "-c", _FULL_DISK_SCRIPT.format(tests=str(ROOT / "tests" / "capture"), path=str(path))],

@@ -16,6 +16,10 @@ from dualhuman_builder.workspace import Workspace
 REPO = Path(__file__).resolve().parents[2]
 
 
+#: The whole demo, and the set-up script.
+pytestmark = pytest.mark.slow
+
+
 def test_setup_script_does_no_work_the_second_time():
     # the suite runs after scripts/setup.sh (the README's test command), so everything is in place
     proc = subprocess.run([str(REPO / "scripts/setup.sh")], capture_output=True, text=True, cwd="/")

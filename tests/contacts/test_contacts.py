@@ -140,6 +140,7 @@ def test_f1_against_the_scenes_own_contacts(topo, handshake):
     assert res.stats["skipped_far_frames"] > 0
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_result(topo, hug, tmp_path, monkeypatch):
     """Frames spread over two worker processes (interleaved): the same labels, distances, events
     and query counts as in one process; progress reaches 100 %; the temporary folder is removed."""

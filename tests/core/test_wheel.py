@@ -20,6 +20,10 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 
+#: Building and installing the wheel takes a while.
+pytestmark = pytest.mark.slow
+
+
 def _run(cmd, cwd, timeout=600, **kw):
     r = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True, timeout=timeout, **kw)
     assert r.returncode == 0, f"{cmd} -> {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
@@ -55,7 +59,6 @@ def test_the_wheel_holds_the_package_data_and_no_top_level_cli(installed):
     assert "dualhuman = dualhuman_builder.cli:main" in text and "sim = dualhuman_builder.sim.source:SimSource" in text
 
 
-@pytest.mark.slow
 def test_the_installed_tool_works_outside_the_checkout(installed):
     _, venv, outside = installed
     py = venv / "bin" / "python"

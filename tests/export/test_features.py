@@ -81,6 +81,7 @@ def test_schema_covers_every_dimension_once():
 
 
 # ------------------------------------------------------------------------------ round trips
+@pytest.mark.slow
 @pytest.mark.parametrize("world", [True, False])
 def test_round_trip_handshake(handshake, world):
     for joints in handshake:

@@ -172,6 +172,7 @@ def test_hand_opening_is_anny_and_the_scenes_flat_hand(model):
     assert (ours - flat).norm(dim=-1).max() < 1e-5
 
 
+@pytest.mark.slow
 def test_shape_calibration_recovers_the_skeleton(model):
     from dualhuman_builder.sim.groundtruth import segment_kinematics
     from dualhuman_builder.tracks import BodyTrack
@@ -204,6 +205,7 @@ def recorded(tmp_path_factory, model):
     return record_simulated_take("handshake", 1, tmp_path_factory.mktemp("take"), fps=15.0, speed=1.0, model=model)
 
 
+@pytest.mark.slow
 def test_full_path_on_a_simulated_take(recorded, model):
     from dualhuman_builder.evaluation.fit import evaluate_take_fit
     from dualhuman_builder.fit.process import process_take
@@ -239,6 +241,7 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev_free["root_mm"] > ev["root_mm"]
 
 
+@pytest.mark.slow
 def test_sync_warns_when_the_heading_or_the_root_is_uncertain(recorded, monkeypatch):
     """The sync report carries each actor's heading and its 1-sigma, and warns (naming the actor
     and the calibration take to carry mounts from) exactly when the 1-sigma exceeds ``HEADING_WARN_DEG``;
@@ -275,6 +278,7 @@ def test_sync_warns_when_the_heading_or_the_root_is_uncertain(recorded, monkeypa
     assert offset_warnings(synchronise(columns, fps=15.0).report) == []
 
 
+@pytest.mark.slow
 def test_a_calibration_takes_mounts_carry_over_to_later_takes(recorded, model, tmp_path):
     """``dualhuman sync WS --take T --mounts-from CAL``: the studio day's calibration take (the same
     simulated devices, seed 1) is synced first, and every tracker of the handshake keeps the mount
@@ -342,6 +346,7 @@ def test_a_calibration_takes_mounts_carry_over_to_later_takes(recorded, model, t
     assert res.exit_code != 0 and "cannot carry the mounts of itself" in res.output
 
 
+@pytest.mark.slow
 def test_the_suits_misalignments_bring_the_tracker_offsets_closer(recorded):
     """An inertial suit's limbs are off by tens of millimetres where its segments' orientations are
     misaligned (the simulated suit: 2 degrees RMS per segment). Solving those misalignments along
@@ -728,6 +733,7 @@ def test_held_rounds_that_settle_after_a_stall_with_the_shape_bent_are_fitted_ag
     assert any("the held rounds settled with the skeleton energy" in x and "fitted again the exact way" in x for x in messages)
 
 
+@pytest.mark.slow
 def test_the_answers_depths_are_measured_once_and_are_its_own(model, monkeypatch):
     """The depths a fit reports after the collision term are those of the bodies it returns, frame by
     frame (measured again here on anny's own meshes), though the end of a segment measures only the
@@ -820,6 +826,7 @@ def test_stuck_frames_restart_from_their_neighbours():
     assert not restart_from_neighbours(frozen, np.ones(W, bool)) and torch.equal(frozen[0], delta)
 
 
+@pytest.mark.slow
 def test_a_foot_in_stance_stands_on_the_floor(model):
     """A standing body whose soles float 8 mm above the floor (the trackers' offsets can leave one
     so: nothing else holds it down) is put on the floor by the stance contact term: the lowest sole
@@ -922,6 +929,7 @@ def test_segments_are_cross_faded_over_the_frames_they_share():
     np.testing.assert_array_equal(j["pen_before"], [0, 0, 1, 1, 1, 1, 1, 3, 3, 3])  # the later segment's
 
 
+@pytest.mark.slow
 def test_a_seam_whose_cross_fade_passes_through_the_partner_is_fitted_again(model):
     """Two segments that leave actor b on opposite sides of a (30 cm to its left in one, 50 cm to
     its right in the other): the blend of their shared frames takes b through a. That seam is
@@ -1030,6 +1038,7 @@ def test_both_actors_skeleton_energy_at_once_is_the_sum_of_each_alone(model):
         assert torch.allclose(x, y, rtol=1e-4, atol=1e-3 * float(y.abs().max()))
 
 
+@pytest.mark.slow
 def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeypatch):
     """The same take fitted in this process alone, by one worker process (this one made to leave it
     every segment), and with a worker that cannot start (this process then fits every segment

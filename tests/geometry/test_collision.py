@@ -167,6 +167,7 @@ def test_identical_position_is_pushed_apart(ct, bodies):
     assert ct(a + ta2[:, None], a + tb2[:, None]).loss.item() < r.loss.item()
 
 
+@pytest.mark.slow
 def test_guard_compares_the_torsos_so_a_close_hug_pays_nothing(body_model, bodies):
     """The simulated hug of seed 2 brings the whole bodies' centroids within 10 cm (arms wrapped round
     the partner) while the torsos stay ~25 cm apart: the whole-body guard fires there and pushes the
@@ -534,6 +535,7 @@ def test_contacts_only_the_moving_vertices_change_give_the_same_gradient(bodies,
         ct.moving_only(lin, moving[:-1])
 
 
+@pytest.mark.slow
 def test_signs_are_kept_away_from_the_parts_that_moved_far(bodies, body_model):
     """With ``parts`` (here: the fingers of each hand, and the rest), a call after the fingers moved 3 cm
     keeps the remembered signs of the vertices far from them, where the plain bound (the obstacle's

@@ -26,6 +26,7 @@ def _closed_mesh(model):
     return faces[collision_faces(faces, model.num_vertices)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("kind", SCENE_TYPES)
 def test_scene_quality_contract(kind, seed, body_model):
@@ -57,6 +58,7 @@ def test_scene_quality_contract(kind, seed, body_model):
     assert contract_failures(sc.stats) == []
 
 
+@pytest.mark.slow
 def test_the_calibration_scene_turns_every_tracked_segment_both_ways(body_model):
     """The calibration motion of a studio day (``calibration``, not an interaction): the actors never
     touch, the contract holds, and every segment a tracker is strapped to turns about the vertical
@@ -129,6 +131,7 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
         Scene.load(sc.sequence.save(tmp_path / "seq.npz"))  # an InteractionSequence is not a Scene
 
 
+@pytest.mark.slow
 def test_deterministic_and_parameters_act(body_model):
     a = scene_of("high_five", 0)
     b = make_scene(SceneParams(type="high_five", seed=0, fps=FPS))
