@@ -23,7 +23,7 @@ located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plu
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --compare-exact
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --calibration
 
-``--calibration`` follows the session protocol: per device seed it also records (or, with
+``--calibration`` follows the studio-day protocol: per device seed it also records (or, with
 ``--keep``, reuses ``DIR/calibration-<seed>/``) a ``calibration`` take of the same devices, syncs
 it (printing its own mounts' errors against the simulated ones), and carries its tracker mounts and lags into every take's sync
 (:func:`~dualhuman_builder.sync.timeline.synchronise` ``mounts_from``; ``dualhuman sync

@@ -64,7 +64,7 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
 )
 
 ACCURACY = (("fit_accuracy", "Without a calibration take"),
-            ("fit_accuracy_calibrated", "With the session's calibration take"))  # fmt: skip
+            ("fit_accuracy_calibrated", "With the studio day's calibration take"))  # fmt: skip
 
 INTRO = (
     "Each script under `benchmarks/` writes its latest figures to `benchmarks/results/<name>.json`, with the machine, "

@@ -24,7 +24,7 @@ def import_(workspace: Path, file: Path, take: str | None, actor: str | None, sc
     The file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read from it
     (skeleton.npz, Y-up metres), and the take is registered with checksums.
 
-    Example:  dualhuman import WS session3.mvnx --actor alice
+    Example:  dualhuman import WS take3.mvnx --actor alice
     """
     from rich.markup import escape
 

@@ -36,7 +36,7 @@ def scene():
 @click.option("--type", "scene_type",
               type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration"]),
               default="handshake", show_default=True,
-              help="The interaction; or 'calibration', the session's calibration motion (the actors apart, turning every "
+              help="The interaction; or 'calibration', the calibration motion of a studio day (the actors apart, turning every "
                    "tracked segment: see `dualhuman sync --mounts-from`).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Draws the two actors' shapes and small variations.")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")

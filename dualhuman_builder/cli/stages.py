@@ -17,7 +17,7 @@ def _take_options(f):
     f = click.option("--no-suit-chain", is_flag=True,
                      help="Do not solve the suit's segment misalignments with the tracker mounts (to see what they buy).")(f)
     f = click.option("--mounts-from", "mounts_from", metavar="TAKE", default=None,
-                     help="The session's calibration take (actors bowing, twisting, raising their arms and turning on "
+                     help="The studio day's calibration take (actors bowing, twisting, raising their arms and turning on "
                           "the spot; `sim://calibration` simulates one). Each tracker worn there by the same actor on "
                           "the same segment keeps the mount solved there (one strapped again since is solved afresh), "
                           "and the trackers' lag behind the suits is averaged with the one measured there unless the "
@@ -40,7 +40,7 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 
     A take whose actors hardly turn a segment (standing still, shaking hands) leaves the mounts
     to where the protocol says the trackers are strapped, and a short take measures the lag
-    poorly: start the session with a calibration take (CAL below) and pass it with
+    poorly: start the studio day with a calibration take (CAL below) and pass it with
     --mounts-from.
 
     \b
