@@ -46,6 +46,7 @@ def import_(workspace: Path, file: Path, take: str | None, actor: str | None, sc
         console.print(f"  [dim]{escape(note)}[/]", highlight=False, soft_wrap=True)
     console.print(f"  files in {r.source.parent}", highlight=False, soft_wrap=True)
 
+
 @main.command()
 @click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Rig file naming the sources and who wears what (e.g. rigs/studio.toml).")

@@ -22,6 +22,16 @@ def _floats(text: str | None, what: str, n: int = 2) -> list[float] | None:
         raise click.BadParameter(f"{what} must be {n} comma-separated numbers, got {text!r}")
     return vals
 
+
+#: The scene types (``dualhuman_builder.sim.scenes.ALL_TYPES``, spelled out so that --help imports nothing heavy;
+#: tests/cli/test_cli.py checks they agree).
+SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration")
+_scene_type_option = click.option(
+    "--type", "scene_type", type=click.Choice(SCENE_TYPES), default="handshake", show_default=True,
+    help="The interaction; or 'calibration', the calibration motion of a studio day (the actors apart, turning every "
+         "tracked segment: see `dualhuman sync --mounts-from`).")  # fmt: skip
+
+
 @main.group()
 def scene():
     """Ground-truth two-person interaction scenes: make, inspect, preview.
@@ -33,11 +43,7 @@ def scene():
 
 
 @scene.command("make")
-@click.option("--type", "scene_type",
-              type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration"]),
-              default="handshake", show_default=True,
-              help="The interaction; or 'calibration', the calibration motion of a studio day (the actors apart, turning every "
-                   "tracked segment: see `dualhuman sync --mounts-from`).")  # fmt: skip
+@_scene_type_option
 @click.option("--seed", type=int, default=0, show_default=True, help="Draws the two actors' shapes and small variations.")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
 @click.option("--tempo", type=float, default=1.0, show_default=True, help="Speed of the motion (>1 faster).")
@@ -197,11 +203,7 @@ def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplica
 @sim.command("take")
 @click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--take", required=True, help="Take name (letters, digits, - and _), e.g. T001.")
-@click.option("--type", "scene_type",
-              type=click.Choice(["handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration"]),
-              default="handshake", show_default=True,
-              help="The interaction, or 'calibration' for the calibration take of a studio day (see `dualhuman sync "
-                   "--mounts-from`).")  # fmt: skip
+@_scene_type_option
 @click.option("--seed", type=int, default=0, show_default=True, help="Seeds the scene's variations and the device errors.")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
 @click.option("--sequence", default=None, help="Name of the take's one sequence (default: the scene type).")

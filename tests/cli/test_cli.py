@@ -291,3 +291,10 @@ def test_body_warm_builds_the_kernel_cache_that_the_stages_then_load(tmp_path):
     shutil.rmtree(cache / record["modules"]["dualhuman_builder.geometry.narrow"][0])
     r = warm("--check")
     assert r.returncode == 1 and "1 module(s) gone" in r.stdout
+
+
+def test_the_scene_type_choices_are_the_generators():
+    from dualhuman_builder.cli.sim import SCENE_TYPES
+    from dualhuman_builder.sim.scenes import ALL_TYPES
+
+    assert tuple(SCENE_TYPES) == tuple(ALL_TYPES)
