@@ -97,10 +97,9 @@ def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, lo
     ``seed`` (:func:`~dualhuman_builder.sim.studio.simulate_studio`), summarised. Returns the StageResult."""
 
     def compute(out):
-        from dualhuman_builder.sim.scenes import Scene
         from dualhuman_builder.sim.studio import simulate_studio
 
-        sc = Scene.load(SCENE.artifact(ws, take, SCENE_FILE, sequence))
+        sc = load_scene(ws, take, sequence)
         summary = studio_summary(simulate_studio(sc.sequence, seed=seed, progress=log))
         with open(out.path(DEVICES_FILE), "w") as f:
             json.dump(summary, f, indent=2)
@@ -108,6 +107,14 @@ def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, lo
 
     return ws.run_stage("devices", compute, take=take, sequence=sequence, params={"seed": seed},
                         depends_on=[("scene", sequence)], force=force)  # fmt: skip
+
+
+def load_scene(ws, take: str, sequence: str):
+    """The sequence's ground-truth :class:`~dualhuman_builder.sim.scenes.Scene` (its scene stage
+    must be done)."""
+    from dualhuman_builder.sim.scenes import Scene
+
+    return Scene.load(SCENE.artifact(ws, take, SCENE_FILE, sequence, what="ground-truth scene"))
 
 
 def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]],
