@@ -47,7 +47,11 @@ stamp="$VENV/.dualhuman-install-stamp"
 want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import dualhuman_builder.cli" >/dev/null 2>&1; then
   echo "setup: installing dualhuman-builder with its test extras"
-  "$PY" -m pip install -q -e '.[test]'
+  # the build backend's notices go to a log, shown only if the install fails
+  if ! "$PY" -m pip install -q -e '.[test]' > "$VENV/pip-install.log" 2>&1; then
+    cat "$VENV/pip-install.log" >&2
+    exit 1
+  fi
   echo "$want" > "$stamp"
   did+=("package")
 fi
