@@ -12,7 +12,7 @@ the product's fit) and without it, on the first ``--workers`` setting.
 
 Inputs are the ground-truth segments of a generated hug (the scene type with the most contact),
 looped to the requested length, with six trackers per actor at their segment origins: the fitter
-does the same work as on a recorded take (sync and fuse excluded; they run at >100x real time).
+does the same work as on a recorded take (sync and fuse excluded: the fit stage's own time).
 Prints: fit frame pairs/s without the collision term, with it (contacts held through each pass,
 the default: ``FitConfig.collision_hold_contacts``), and with it located at every evaluation
 (``exact``, the baseline), median of --runs each, in this process; the held/exact ratio; anny
@@ -284,10 +284,11 @@ def main():
     name = "fit_cuda" if model.device.type == "cuda" else "fit"
     path = write_results(name, figures, params={k: v for k, v in vars(args).items() if k != "out"}, goals=goals,
                          tables=tables, out=args.out,
-                         notes="Sync and fuse excluded (they run at more than 100x real time). Seam jitter: the RMS "
+                         notes="Sync and fuse excluded: the fit stage's own time. Seam jitter: the RMS "
                                "second difference over frames of the joint error against the ground truth, around "
                                "the seams between segments and elsewhere.")  # fmt: skip
     print(f"wrote {path}")
+
 
 if __name__ == "__main__":
     main()

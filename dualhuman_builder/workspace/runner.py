@@ -19,9 +19,11 @@
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import os
+import re
 import secrets
 import shutil
 import socket
@@ -56,6 +58,17 @@ class Stage:
     def __post_init__(self) -> None:
         if self.per not in ("take", "sequence"):
             raise ValueError(f"stage {self.name!r}: per must be 'take' or 'sequence', not {self.per!r}")
+
+    def declares(self, name: str) -> bool:
+        """Whether artifact ``name`` (a path relative to the stage folder) is one this stage
+        declares; each ``{placeholder}`` of :attr:`artifacts` stands for one path component."""
+        parts = name.split("/")
+        for pattern in self.artifacts:
+            pp = pattern.split("/")
+            if len(pp) == len(parts) and all(fnmatch.fnmatchcase(n, re.sub(r"\{[a-z_]+\}", "*", q))
+                                              for n, q in zip(parts, pp)):  # fmt: skip
+                return True
+        return False
 
     def how_to_run(self, ws, take: str, sequence: str | None = None) -> str:
         """The command that runs this stage for ``take`` (and ``sequence``)."""

@@ -86,6 +86,14 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
         assert fit_row["status"] == "done"
         for stage in ("scene", "devices", "capture"):
             assert ws.stage_record(stage, DEMO_TAKE, DEMO_SEQUENCE)["status"] == "done"
+        # every file a stage wrote is one its declaration names (the registry is the truth)
+        from dualhuman_builder.pipeline import STAGES
+
+        for st in STAGES:
+            rec = st.record(ws, DEMO_TAKE, DEMO_SEQUENCE if st.per == "sequence" else None)
+            assert rec is not None and rec["status"] == "done", st.name
+            undeclared = [n for n in rec["artifacts"] if not st.declares(n)]
+            assert not undeclared, f"{st.name} wrote undeclared artifacts {undeclared[:5]}"
         assert [a.shape_source for a in ws.actors()] == ["stature", "stature"]
     # contacts, renders with ground truth, the contact sheet, and a verified export
     from dualhuman_builder.contacts.compute import ContactResult
