@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# Property-based tests (decoders, file readers): a bounded, reproducible example count in the suite;
+# the long fuzz run is benchmarks/fuzz.py. No deadline: this machine's speed drifts.
+settings.register_profile("suite", max_examples=200, deadline=None, derandomize=True,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+settings.load_profile("suite")
 
 
 @pytest.fixture(scope="session")
