@@ -12,6 +12,13 @@ messages, the decoders' counters, events and live status.
 If decoding falls behind (a take at many times real time), nothing is lost: the raw packets are
 already on disk and the decoded samples follow as they are ready; the take is finished once the
 decoder has caught up (:meth:`DecodeProcess.finish`).
+
+One source never stops the others. Its decoder never raises (the guard of
+:class:`~dualhuman_builder.capture.sources.Decoder`); anything else about it that fails here — its
+decoder cannot be built, a sample cannot be encoded, its counters or status cannot be read — marks
+that source failed (:class:`_Lanes`): a ``decoding-failed`` event names the error, its counters
+show ``decoding_failed`` = 1 and, from then on, ``undecoded_packets``, and the other sources go on.
+Its raw packets are still written by the recorder, so replay can decode them later.
 """
 
 from __future__ import annotations
@@ -20,12 +27,126 @@ import multiprocessing as mp
 import queue
 import time
 import traceback
-from typing import Any, Mapping
+from collections import Counter
+from typing import Any, Callable, Mapping
 
 #: How often the decoding process reports counters and live status (seconds).
 STATUS_EVERY_S = 0.25
 #: Scheduling niceness of the decoding process (lower priority than the recorder's readers).
 NICENESS = 10
+
+
+class _Lanes:
+    """The decoders of one decoding process, one per source, isolated from each other.
+
+    ``make_decoder(url)`` builds each decoder, ``encode(index, sample)`` turns a sample into
+    items. :meth:`feed`, :meth:`finish`, :meth:`counters` and :meth:`status` never raise: a
+    failure of one source marks it failed (see the module docstring) and the others go on."""
+
+    def __init__(self, urls: list[str], names: list[str], make_decoder: Callable, encode: Callable):
+        from dualhuman_builder.capture.sources import SourceEvent, now_ns
+
+        self._event, self._now = SourceEvent, now_ns
+        self.names = list(names)
+        self.encode = encode
+        self.decoders: list[Any] = []
+        self.failed: list[str | None] = [None] * len(urls)
+        self.extra: list[Counter] = [Counter() for _ in urls]
+        self._pending: list[list] = [[] for _ in urls]
+        self._last_ns = [0] * len(urls)
+        for i, url in enumerate(urls):
+            try:
+                self.decoders.append(make_decoder(url))
+            except Exception as e:  # noqa: BLE001 - this source only
+                self.decoders.append(None)
+                self._fail(i, "its decoder cannot be built", e)
+
+    def _fail(self, index: int, what: str, error: BaseException) -> None:
+        name = self.names[index] if index < len(self.names) else str(index)
+        message = f"{type(error).__name__}: {error}"
+        self.failed[index] = message[:400]
+        self.extra[index]["decoding_failed"] = 1
+        t = self._last_ns[index] or self._now()
+        self._pending[index].append(self._event(t, "decoding-failed", name,
+                                                f"decoding source {name} stopped, {what} ({self.failed[index]}); "
+                                                "its raw packets are still recorded: `dualhuman replay` decodes "
+                                                "them again"))  # fmt: skip
+
+    def feed(self, index: int, packets) -> tuple:
+        """``("items", index, items, events)`` for raw packets ``[(host_time_ns, data)]`` of source ``index``."""
+        from dualhuman_builder.capture.sources import RawPacket
+
+        items: list = []
+        if self.failed[index] is None:
+            dec = self.decoders[index]
+            try:
+                for t, data in packets:
+                    self._last_ns[index] = t
+                    for s in dec.feed(RawPacket(t, data)):
+                        items += self.encode(index, s)
+            except Exception as e:  # noqa: BLE001 - what the decoder guard cannot catch (encoding)
+                self._fail(index, "a sample could not be written", e)
+        else:
+            self.extra[index]["undecoded_packets"] += len(packets)
+        return ("items", index, items, self._events(index))
+
+    def finish(self) -> list[tuple]:
+        """The held-back samples of every source, as ``("items", ...)`` messages."""
+        out = []
+        for i, dec in enumerate(self.decoders):
+            items: list = []
+            if self.failed[i] is None:
+                try:
+                    for s in dec.finish():
+                        items += self.encode(i, s)
+                except Exception as e:  # noqa: BLE001
+                    self._fail(i, "a sample could not be written", e)
+            out.append(("items", i, items, self._events(i)))
+        return out
+
+    def leftover(self) -> list[tuple]:
+        """``("items", index, [], events)`` for the failures noted since the last messages."""
+        out = [("items", i, [], pending) for i, pending in enumerate(self._pending) if pending]
+        self._pending = [[] for _ in self._pending]
+        return out
+
+    def _events(self, index: int) -> list:
+        dec, out = self.decoders[index], []
+        if dec is not None:
+            try:
+                out = list(dec.pop_events())
+            except Exception as e:  # noqa: BLE001
+                if self.failed[index] is None:
+                    self._fail(index, "its events could not be read", e)
+        out += self._pending[index]
+        self._pending[index] = []
+        return out
+
+    def counters(self) -> list[dict[str, int]]:
+        out = []
+        for i, dec in enumerate(self.decoders):
+            c: dict[str, int] = {}
+            if dec is not None:
+                try:
+                    c = dict(dec.counters)
+                except Exception as e:  # noqa: BLE001
+                    if self.failed[i] is None:
+                        self._fail(i, "its counters could not be read", e)
+            c.update(self.extra[i])
+            out.append(c)
+        return out
+
+    def status(self, now: int) -> list[dict[str, Any]]:
+        out = []
+        for i, dec in enumerate(self.decoders):
+            st: dict[str, Any] = {}
+            if dec is not None and self.failed[i] is None:
+                try:
+                    st = dict(dec.status(now))
+                except Exception as e:  # noqa: BLE001
+                    self._fail(i, "its status could not be read", e)
+            out.append(st)
+        return out
 
 
 def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: float, inbox, outbox) -> None:
@@ -50,11 +171,11 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
 
     threading.Thread(target=watchdog, name="parent-watchdog", daemon=True).start()
     from dualhuman_builder.capture.log.writer import SampleEncoder
-    from dualhuman_builder.capture.sources import RawPacket, make_decoder, now_ns
+    from dualhuman_builder.capture.sources import make_decoder, now_ns
 
     try:
-        decoders = [make_decoder(u) for u in urls]
         encoder = SampleEncoder(names, bindings, foxglove_hz)
+        lanes = _Lanes(urls, names, make_decoder, encoder.encode)
         next_status = 0.0
         while True:
             try:
@@ -62,23 +183,19 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
             except queue.Empty:
                 msg = None
             if msg is not None and msg[0] == "finish":
-                for i, dec in enumerate(decoders):
-                    items = [it for s in dec.finish() for it in encoder.encode(i, s)]
-                    outbox.put(("items", i, items, dec.pop_events()))
-                outbox.put(("done", [dict(d.counters) for d in decoders],
-                            [d.status(now_ns()) for d in decoders], time.process_time()))  # fmt: skip
+                msgs = lanes.finish()
+                status = lanes.status(now_ns())
+                counters = lanes.counters()
+                msgs += lanes.leftover()
+                for out in msgs:
+                    outbox.put(out)
+                outbox.put(("done", counters, status, time.process_time()))
                 return
             if msg is not None:
-                index, packets = msg[1], msg[2]
-                dec = decoders[index]
-                items = []
-                for t, data in packets:
-                    for s in dec.feed(RawPacket(t, data)):
-                        items += encoder.encode(index, s)
-                outbox.put(("items", index, items, dec.pop_events()))
+                outbox.put(lanes.feed(msg[1], msg[2]))
             if time.monotonic() >= next_status:
-                now = now_ns()
-                outbox.put(("status", [dict(d.counters) for d in decoders], [d.status(now) for d in decoders]))
+                status = lanes.status(now_ns())
+                outbox.put(("status", lanes.counters(), status))
                 next_status = time.monotonic() + STATUS_EVERY_S
     except BaseException:  # noqa: BLE001 - report any failure to the recorder, which stops cleanly
         outbox.put(("error", traceback.format_exc()))

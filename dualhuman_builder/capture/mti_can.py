@@ -29,13 +29,13 @@ from dualhuman_builder.capture.sources import (Decoder, RawPacket, Source, Sourc
                                                number_param, parse_source_url)  # fmt: skip
 from dualhuman_builder.capture.wire.mti_can import (CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_FRAME, CAN_RTR_FLAG, DLC, CanId,
                                                     decode_can_signals, pack_can_frame, unpack_can_frame)  # fmt: skip
-from dualhuman_builder.capture.xbus_serial import LIVE_NS, SequenceTracker, Unwrapper
+from dualhuman_builder.capture.xbus_serial import LIVE_NS, QUATERNION_NORM_TOLERANCE, SequenceTracker, Unwrapper
 
 #: Most frames one :meth:`MtiCanSource.read` returns.
 MAX_BATCH = 4096
-#: A decoded quaternion whose norm is further than this from 1 is refused (``bad_quaternion``):
-#: int16 rounding moves the norm by less than 1e-4.
-QUATERNION_NORM_TOLERANCE = 0.01
+#: Most distinct CAN error classes remembered (each new one is a ``bus-error`` event); further
+#: classes are only counted, so hostile error frames cannot grow the decoder.
+MAX_ERROR_CLASSES = 64
 
 _SAMPLE_TIME, _GROUP_COUNTER, _STATUS_WORD, _QUATERNION = (int(CanId.SAMPLE_TIME), int(CanId.GROUP_COUNTER),
                                                           int(CanId.STATUS_WORD), int(CanId.QUATERNION))
@@ -79,9 +79,10 @@ class MtiCanDecoder(Decoder):
     each with the ``device_time_ns`` of its sample).
 
     Counters: ``packets``, ``bytes``, ``frames`` (MTi frames accepted), ``samples``;
-    ``bad_frame`` (not a 16-byte can_frame), ``unknown_id`` (IDs not in the table, extended IDs),
-    ``bad_length`` (wrong DLC for the ID; ignored), ``remote_frames``, ``error_frames`` (also a
-    ``bus-error`` event for each new error class), ``orphan_frames``, ``duplicate_frame``,
+    ``bad_frame`` (not a 16-byte can_frame, or a length field over 8, whatever its flags),
+    ``unknown_id`` (IDs not in the table, extended IDs), ``bad_length`` (wrong DLC for the ID;
+    ignored), ``remote_frames``, ``error_frames`` (also a ``bus-error`` event for each of the first
+    :data:`MAX_ERROR_CLASSES` error classes), ``orphan_frames``, ``duplicate_frame``,
     ``empty_group`` (a SampleTime with nothing after it; dropped), ``incomplete``,
     ``bad_quaternion`` (norm off by more than :data:`QUATERNION_NORM_TOLERANCE`; NaN); ``lost``,
     ``duplicate`` (a repeated GroupCounter; the sample is dropped), ``out_of_order`` from the
@@ -121,6 +122,9 @@ class MtiCanDecoder(Decoder):
             self._counters["bad_frame"] += 1
             return []
         can_id, dlc, payload = CAN_FRAME.unpack(data)
+        if dlc > 8:  # not a classic CAN frame, whatever its flags say
+            self._counters["bad_frame"] += 1
+            return []
         if can_id & _FLAGS:
             self._flagged(data, packet.host_time_ns)
             return []
@@ -129,7 +133,7 @@ class MtiCanDecoder(Decoder):
             self._counters["unknown_id"] += 1
             return []
         if dlc != expected:
-            self._counters["bad_length" if dlc <= 8 else "bad_frame"] += 1
+            self._counters["bad_length"] += 1
             return []
         self._frames += 1
         body = payload[:dlc]
@@ -163,12 +167,17 @@ class MtiCanDecoder(Decoder):
         self._group = None
         return out
 
+    def recover(self) -> None:
+        """After an exception in decoding (see :class:`~.sources.Decoder`): drop the group being
+        assembled."""
+        self._group = None
+
     def _flagged(self, data: bytes, host_ns: int) -> None:
         frame = unpack_can_frame(data)
         if frame.is_error_frame:
             self._counters["error_frames"] += 1
             cls = frame.arbitration_id
-            if cls not in self._error_classes:
+            if cls not in self._error_classes and len(self._error_classes) < MAX_ERROR_CLASSES:
                 self._error_classes.add(cls)
                 self.event(host_ns, "bus-error", self.device,
                            f"CAN error frame, error class 0x{cls:X} (linux/can/error.h); more are counted")  # fmt: skip

@@ -28,15 +28,25 @@ Two layers, so that a recording can be replayed bit for bit:
 
 Bad input never raises out of a decoder: a corrupt, truncated, duplicated or unknown packet is
 counted in :attr:`Decoder.counters` (and, when a person should know, logged in
-:attr:`Decoder.events`), and decoding goes on with the next packet.
+:attr:`Decoder.events`), and decoding goes on with the next packet. One guard in :class:`Decoder`
+holds every decoder to that, whatever its code does: the ``feed``, ``finish`` and ``status`` a
+subclass defines are wrapped when the class is created (``__init_subclass__``), so an exception
+inside them is counted (``decoder_errors``), reported as a ``decoder-error`` event (exception type,
+short message and where it was raised, no traceback), the decoder's partial state is dropped
+(:meth:`Decoder.recover`), and the call returns nothing (``[]``, ``{}``) — the packet that hit the
+fault is lost, the next one is decoded. Events are coalesced per ``(kind, entity)``
+(:meth:`Decoder.event`), so a flood of them keeps memory bounded for a whole take.
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 import importlib
 import importlib.metadata
+import os
 import time
+import types
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Iterator
@@ -80,17 +90,67 @@ class SourceEvent:
     message: str
 
 
+#: Events of one ``(kind, entity)`` a decoder keeps as they come before it coalesces them.
+EVENT_BURST = 10
+#: After the burst, at most one event of a ``(kind, entity)`` is kept per this much host time (ns);
+#: it says how many like it were left out since the last one kept.
+EVENT_INTERVAL_NS = 10_000_000_000
+#: Most ``(kind, entity)`` pairs a decoder keeps apart; events of further pairs are coalesced together.
+MAX_EVENT_KEYS = 1024
+#: Most events a decoder holds until :meth:`Decoder.pop_events` drains them; more are counted
+#: ``events_dropped`` (replay and other readers that never drain them stay bounded).
+MAX_HELD_EVENTS = 10_000
+#: Longest event message kept (characters); longer ones are cut.
+MAX_EVENT_MESSAGE = 400
+#: Where events of the pairs beyond :data:`MAX_EVENT_KEYS` are counted.
+_OVERFLOW = ("", "")
+
+
+def _short(text: str, limit: int = MAX_EVENT_MESSAGE) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+class _EventKey:
+    """Coalescing state of one ``(kind, entity)``: events kept, host time of the last kept one,
+    events left out since, and the last one left out (for the summary at :meth:`Decoder.finish`)."""
+
+    __slots__ = ("kept", "last_kept_ns", "suppressed", "last")
+
+    def __init__(self) -> None:
+        self.kept = 0
+        self.last_kept_ns = 0
+        self.suppressed = 0
+        self.last: SourceEvent | None = None
+
+
 class Decoder(abc.ABC):
     """Raw packets of one source -> typed samples. Deterministic and never raises on bad input.
 
     ``counters``: named counts, always at least ``packets``, ``bytes`` and ``samples``; the
     device-specific ones (``lost``, ``duplicate``, ``out_of_order``, ``bad_checksum``,
     ``truncated``, ``unknown_id``, ...) are documented by each decoder. ``events``: notable things
-    in order (drained by whoever shows them: :meth:`pop_events`)."""
+    in order (drained by whoever shows them: :meth:`pop_events`).
+
+    The guard (see the module docstring): ``feed``, ``finish`` and ``status`` of every subclass
+    never raise an :class:`Exception`. One that escapes a subclass's code is counted
+    ``decoder_errors``, becomes a ``decoder-error`` event (entity: the decoder's ``device`` if it
+    has one, else its class name) and calls :meth:`recover`; ``feed`` and ``finish`` then return
+    ``[]``, ``status`` ``{}``. ``feed`` returning something other than a list is turned into one.
+    Counters the guard and :meth:`event` add: ``decoder_errors``, ``events_suppressed``,
+    ``events_dropped`` (present only once they happen)."""
 
     def __init__(self) -> None:
         self.counters: Counter = Counter()
         self.events: list[SourceEvent] = []
+        self._event_keys: dict[tuple[str, str], _EventKey] = {}
+        self._guard_host_ns = 0
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        for name, guard in (("feed", _guard_feed), ("finish", _guard_finish), ("status", _guard_status)):
+            fn = cls.__dict__.get(name)
+            if isinstance(fn, types.FunctionType) and not getattr(fn, "_decoder_guard", False):
+                setattr(cls, name, guard(fn))
 
     @abc.abstractmethod
     def feed(self, packet: RawPacket) -> list:
@@ -105,12 +165,137 @@ class Decoder(abc.ABC):
         entity with at least ``last_ns`` (host time of its last sample) and ``live`` (bool)."""
         return {}
 
+    def recover(self) -> None:
+        """Called by the guard after an exception escaped ``feed``, ``finish`` or ``status``:
+        drop the partial state (a half-received frame, a group being assembled) so that the next
+        packet starts clean. Counters, sequence tracking and settings stay. Default: nothing."""
+
+
     def event(self, host_time_ns: int, kind: str, entity: str, message: str) -> None:
-        self.events.append(SourceEvent(int(host_time_ns), kind, entity, message))
+        """Log an event for a person. Coalesced per ``(kind, entity)`` so that memory stays
+        bounded however many come: the first :data:`EVENT_BURST` are kept as they are; after that
+        at most one per :data:`EVENT_INTERVAL_NS` of host time is kept, its message followed by
+        how many like it were left out since the last one kept (each counted
+        ``events_suppressed``); :meth:`finish` adds one summary per pair with some still left
+        out. Pairs beyond :data:`MAX_EVENT_KEYS` share one such budget; messages are cut at
+        :data:`MAX_EVENT_MESSAGE` characters; beyond :data:`MAX_HELD_EVENTS` undrained events,
+        new ones are only counted ``events_dropped``."""
+        t = int(host_time_ns)
+        ev = SourceEvent(t, str(kind), str(entity), _short(str(message)))
+        keys = self._event_keys
+        key = (ev.kind, ev.entity)
+        st = keys.get(key)
+        if st is None:
+            if len(keys) >= MAX_EVENT_KEYS:
+                key = _OVERFLOW
+                st = keys.get(key)
+            if st is None:
+                st = keys[key] = _EventKey()
+        if st.kept < EVENT_BURST or t - st.last_kept_ns >= EVENT_INTERVAL_NS:
+            if st.kept >= EVENT_BURST and st.suppressed:
+                others = " of other kinds or entities" if key is _OVERFLOW else " like it"
+                ev = SourceEvent(t, ev.kind, ev.entity, _short(ev.message, MAX_EVENT_MESSAGE - 80)
+                                 + f" ({st.suppressed} more{others} left out since the last one kept)")  # fmt: skip
+            st.kept += 1
+            st.last_kept_ns, st.suppressed, st.last = t, 0, None
+            self._hold(ev)
+        else:
+            st.suppressed += 1
+            st.last = ev
+            self.counters["events_suppressed"] += 1
+
+    def _hold(self, ev: SourceEvent) -> None:
+        if len(self.events) >= MAX_HELD_EVENTS:
+            self.counters["events_dropped"] += 1
+        else:
+            self.events.append(ev)
+
+    def _flush_events(self) -> None:
+        """One summary event per ``(kind, entity)`` with events left out since its last kept one."""
+        for key, st in self._event_keys.items():
+            if st.suppressed and st.last is not None:
+                last, n = st.last, st.suppressed
+                others = " of other kinds or entities" if key is _OVERFLOW else " like it"
+                self._hold(SourceEvent(last.host_time_ns, last.kind, last.entity,
+                                       f"{n} more event(s){others} left out; the last: {last.message}"))  # fmt: skip
+                st.suppressed, st.last, st.last_kept_ns = 0, None, last.host_time_ns
 
     def pop_events(self) -> list[SourceEvent]:
         out, self.events = self.events, []
         return out
+
+    def _decoder_error(self, where: str, error: Exception, host_ns: int) -> None:
+        """The guard's handler: count, report and recover; never raises."""
+        try:
+            self.counters["decoder_errors"] += 1
+        except Exception:  # noqa: BLE001 - a subclass's counters may be what failed
+            pass
+        try:
+            tb = error.__traceback__
+            while tb is not None and tb.tb_next is not None:
+                tb = tb.tb_next
+            at = f" at {os.path.basename(tb.tb_frame.f_code.co_filename)}:{tb.tb_lineno}" if tb is not None else ""
+            entity = str(getattr(self, "device", "") or type(self).__name__)
+            self.event(host_ns, "decoder-error", entity,
+                       f"{type(self).__name__}.{where} raised {type(error).__name__}{at}: {_short(str(error), 200)}; "
+                       "counted decoder_errors, decoding goes on with the next packet")  # fmt: skip
+        except Exception:  # noqa: BLE001
+            pass
+        try:
+            self.recover()
+        except Exception:  # noqa: BLE001 - the next packet will tell
+            pass
+
+
+def _guard_feed(feed):
+    @functools.wraps(feed)
+    def guarded(self, packet):
+        try:
+            self._guard_host_ns = packet.host_time_ns
+            out = feed(self, packet)
+            return out if type(out) is list else ([] if out is None else list(out))
+        except Exception as e:  # noqa: BLE001 - the guard: a decoder never raises
+            self._decoder_error("feed", e, getattr(self, "_guard_host_ns", 0))
+            return []
+
+    guarded._decoder_guard = True
+    return guarded
+
+
+def _guard_finish(finish):
+    @functools.wraps(finish)
+    def guarded(self):
+        try:
+            out = finish(self)
+            out = out if type(out) is list else ([] if out is None else list(out))
+        except Exception as e:  # noqa: BLE001
+            self._decoder_error("finish", e, getattr(self, "_guard_host_ns", 0))
+            out = []
+        try:
+            self._flush_events()
+        except Exception:  # noqa: BLE001
+            pass
+        return out
+
+    guarded._decoder_guard = True
+    return guarded
+
+
+def _guard_status(status):
+    @functools.wraps(status)
+    def guarded(self, now_ns):
+        try:
+            out = status(self, now_ns)
+            return out if isinstance(out, dict) else {}
+        except Exception as e:  # noqa: BLE001
+            self._decoder_error("status", e, now_ns)
+            return {}
+
+    guarded._decoder_guard = True
+    return guarded
+
+
+Decoder.finish = _guard_finish(Decoder.finish)
 
 
 class Source(abc.ABC):

@@ -60,6 +60,10 @@ MAX_READ = 1 << 16
 #: A device is ``live`` while its last sample is younger than this (ns).
 LIVE_NS = 500_000_000
 TICK_NS = 1_000_000_000 // SAMPLE_TIME_FINE_HZ
+#: A quaternion whose norm is further than this from 1 (or that is not finite) is refused
+#: (``bad_quaternion``; shared with :mod:`.mti_can`, whose int16 rounding moves the norm by < 1e-4).
+QUATERNION_NORM_TOLERANCE = 0.01
+_NORM2_LO, _NORM2_HI = (1.0 - QUATERNION_NORM_TOLERANCE) ** 2, (1.0 + QUATERNION_NORM_TOLERANCE) ** 2
 
 _NAN_Q = (float("nan"),) * 4
 _NAN_V = (float("nan"),) * 3
@@ -191,13 +195,19 @@ class XbusDecoder(Decoder):
     completed the frame; ``orientation`` the Quaternion record turned from the MTi's Z-up earth
     frame to our Y-up world, (x, y, z, w); ``acceleration``, ``rate_of_turn``,
     ``magnetic_field`` as sent (sensor frame); ``status`` the StatusWord (else StatusByte, else 0).
-    A record missing from a frame leaves NaN in its field and counts the sample ``incomplete``.
+    A record missing from a frame leaves NaN in its field and counts the sample ``incomplete``. A
+    value that cannot be a measurement is not passed on either: a Quaternion with a NaN or
+    infinite value or a norm off 1 by more than :data:`QUATERNION_NORM_TOLERANCE` leaves NaN in
+    ``orientation`` (``bad_quaternion``), an Acceleration, RateOfTurn or MagneticField record with
+    a NaN or infinite value leaves NaN in its field (``bad_vector``); the sample keeps its counter
+    and times.
 
     Counters: ``packets``, ``bytes``, ``samples``; the parser's ``frames``, ``bytes_skipped``,
     ``resyncs``, ``bad_checksum``, ``bad_length``, ``cut_frames`` (:class:`~.wire.xbus.XbusParser`;
     lengths above :data:`MAX_FRAME_DATA` refused; :meth:`finish` gives up a partial last frame);
     the records' ``unknown_id``, ``unsupported_precision``, ``bad_record_size``, ``truncated``
-    (:func:`~.wire.xbus.decode_mtdata2`); ``incomplete``;
+    (:func:`~.wire.xbus.decode_mtdata2`); ``empty_frame`` (an MTData2 frame with no records:
+    no sample); ``incomplete``; ``bad_quaternion``, ``bad_vector``;
     ``lost``, ``duplicate`` (dropped), ``out_of_order`` (kept) from the PacketCounter
     (:class:`SequenceTracker`); other frames by MID as ``mid_0x31`` etc. An Error (0x42) frame
     also becomes a ``device-error`` event.
@@ -266,9 +276,15 @@ class XbusDecoder(Decoder):
                 pc, stf, w, x, y, z, *vectors = layout.pick(values)
                 if not self.sequence.update(pc, self._counters):
                     return None
-                floats = np.array((_H * (x - w), _H * (y + z), _H * (z - y), _H * (w + x), *vectors))
+                if _NORM2_LO <= w * w + x * x + y * y + z * z <= _NORM2_HI and math.isfinite(sum(vectors)):
+                    floats = np.array((_H * (x - w), _H * (y + z), _H * (z - y), _H * (w + x), *vectors))
+                else:  # a bad value (NaN and inf fail both tests): checked record by record
+                    floats = self._floats((w, x, y, z), vectors[0:3], vectors[3:6], vectors[6:9])
                 return ImuSample(self.device, pc, self.time_ticks(stf) * TICK_NS, host_ns, floats[0:4], floats[4:7],
                                  floats[7:10], floats[10:13], 0 if layout.status_at < 0 else values[layout.status_at])
+        if not data:
+            self._counters["empty_frame"] += 1
+            return None
         found: Counter = Counter()
         rec = decode_mtdata2(data, found)
         if found:
@@ -294,11 +310,32 @@ class XbusDecoder(Decoder):
             device_ns = coarse[0] * 1_000_000_000 if coarse is not None else -1
         if not complete or q is None or acc is None or gyr is None or mag is None:
             counters["incomplete"] += 1
-        # one array, four views: a quarter of the allocations
-        floats = np.array((*(from_zup_wxyz(*q) if q is not None else _NAN_Q), *(acc or _NAN_V), *(gyr or _NAN_V),
-                           *(mag or _NAN_V)))  # fmt: skip
+        floats = self._floats(q, acc, gyr, mag)
         return ImuSample(self.device, counter, device_ns, host_ns, floats[0:4], floats[4:7], floats[7:10],
                          floats[10:13], (word or byte or (0,))[0])  # fmt: skip
+
+    def _floats(self, q, acc, gyr, mag) -> np.ndarray:
+        """Orientation (Y-up x, y, z, w), acceleration, rate of turn, magnetic field as one (13,)
+        array (four views of it: a quarter of the allocations); NaN for a record that is missing
+        (None) or holds a bad value (counted ``bad_quaternion`` / ``bad_vector``)."""
+        if q is not None:
+            w, x, y, z = q
+            if not _NORM2_LO <= w * w + x * x + y * y + z * z <= _NORM2_HI:  # NaN and inf fail too
+                self._counters["bad_quaternion"] += 1
+                q = None
+        vectors = []
+        for v in (acc, gyr, mag):
+            if v is not None and not all(map(math.isfinite, v)):
+                self._counters["bad_vector"] += 1
+                v = None
+            vectors += v or _NAN_V
+        return np.array((*(from_zup_wxyz(*q) if q is not None else _NAN_Q), *vectors))
+
+    def recover(self) -> None:
+        """After an exception in decoding (see :class:`~.sources.Decoder`): drop the bytes of a
+        partial frame and the compiled layouts (rebuilt from the next frames)."""
+        self.parser.rest()
+        self._layouts.clear()
 
     def status(self, now_ns: int) -> dict:
         """``{device: {"last_ns": host time of the last sample (None before the first), "live"}}``."""

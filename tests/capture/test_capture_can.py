@@ -140,6 +140,29 @@ def test_unknown_ids_bad_lengths_and_missing_frames():
     assert event.kind == "bus-error" and "0x4" in event.message
 
 
+def test_flagged_frames_with_a_length_over_8_are_counted_not_raised():
+    samples = imu_samples(0.05)[:4]
+    pk = packets_of(samples)
+    crafted = [RawPacket(0, struct.pack("<IB3x8s", flags | 0x05, dlc, bytes(8)))
+               for flags in (0x20000000, 0x40000000, 0x80000000, 0xE0000000, 0) for dlc in (9, 15, 255)]  # fmt: skip
+    d = MtiCanDecoder()
+    got = decode(d, pk[:8] + crafted + pk[8:])
+    assert [g.counter for g in got] == [s.counter for s in samples]
+    c = d.counters
+    assert c["bad_frame"] == len(crafted) and c["error_frames"] == 0 and c["packets"] == len(pk) + len(crafted)
+    assert c["decoder_errors"] == 0 and c["incomplete"] == 0
+
+
+def test_error_frames_of_many_classes_keep_the_decoder_small():
+    from dualhuman_builder.capture.mti_can import MAX_ERROR_CLASSES
+
+    d = MtiCanDecoder()
+    for k in range(1, 2001):  # every error class different (a crafted take)
+        d.feed(RawPacket(k, struct.pack("<IB3x8s", 0x20000000 | k, 8, bytes(8))))
+    assert d.counters["error_frames"] == 2000
+    assert len(d._error_classes) == MAX_ERROR_CLASSES and len(d.pop_events()) <= MAX_ERROR_CLASSES
+
+
 def test_sample_time_and_group_counter_wrap():
     base = imu_samples(0.5, first_counter=65520)
     shift = (2**32 - 120_000) * 1000 - base[0].device_time_ns  # the u32 microseconds wrap after 12 samples

@@ -185,6 +185,81 @@ def test_decoder_counts_loss_duplicates_missing_records_and_errors():
     assert s.counter == 11 and s.host_time_ns == 300 and d.counters["cut_frames"] == 1
 
 
+def test_an_empty_mtdata2_frame_is_counted_and_decoding_goes_on():
+    samples = imu_samples(0.05)[:6]
+    frames = [encode_mtdata2(s) for s in samples]
+    empty = bytes.fromhex("FAFF3600CB")
+    assert empty == encode_message(MID.MT_DATA2)
+    for at in (0, 3):  # before the first layout is compiled, and after
+        d = XbusDecoder("imu")
+        stream = frames[:at] + [empty] + frames[at:]
+        got = decode(d, [RawPacket(k, f) for k, f in enumerate(stream)])
+        assert [g.counter for g in got] == [s.counter for s in samples]
+        assert d.counters["empty_frame"] == 1 and d.counters["packets"] == 7 and d.counters["frames"] == 7
+        assert d.counters["decoder_errors"] == 0 and d.pop_events() == []
+
+
+def test_an_empty_frame_in_a_take_replays_and_verifies(tmp_path):
+    from dualhuman_builder.capture.log.writer import TakeWriter
+    from dualhuman_builder.capture.replay import redecode, verify_replay
+
+    samples = imu_samples(0.05)[:8]
+    chunks = [encode_mtdata2(s) for s in samples]
+    chunks[4] = chunks[4] + bytes.fromhex("FAFF3600CB")  # the empty frame inside one serial read
+    path = tmp_path / "take.mcap"
+    w = TakeWriter(path, take="t", sources=[("imu", "xbus://loop", "xbus")])
+    d = make_decoder("xbus://loop")
+    for k, c in enumerate(chunks):
+        p = RawPacket(1_000 + k, c)
+        w.add_raw(0, p)
+        for s in d.feed(p):
+            w.add_sample(0, s)
+    for s in d.finish():
+        w.add_sample(0, s)
+    w.close()
+    assert [s.counter for _, s in redecode(path)] == [s.counter for s in samples]
+    check = verify_replay(path)
+    assert check.samples == len(samples) and check.identical
+
+
+def _frame(q_wxyz, acc, gyr=(0.1, 0.2, 0.3), mag=(0.3, 0.0, 0.4), counter=0, precision=0):
+    f = "d" if precision else "f"
+    size = 8 if precision else 4
+    return encode_message(MID.MT_DATA2, struct.pack(
+        f"!HBH HBL HB4{f} HB3{f} HB3{f} HB3{f} HBL", 0x1020, 2, counter, 0x1060, 4, 100 * counter,
+        0x2010 | precision, 4 * size, *q_wxyz, 0x4020 | precision, 3 * size, *acc, 0x8020 | precision, 3 * size, *gyr,
+        0xC020 | precision, 3 * size, *mag, 0xE020, 4, 0))  # fmt: skip
+
+
+def test_non_finite_or_non_unit_values_are_counted_not_passed_on():
+    nan, inf = float("nan"), float("inf")
+    good_q, good_acc = (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 9.81)
+    for precision in (0, 3):  # float32 and float64 records
+        d = XbusDecoder("imu")
+        frames = [_frame(good_q, good_acc, counter=0, precision=precision),  # compiles the layout
+                  _frame((nan, 0, 0, 0), good_acc, counter=1, precision=precision),
+                  _frame((inf, 0, 0, 0), (inf, 0, 0), counter=2, precision=precision),
+                  _frame(good_q, (0, nan, 0), mag=(-inf, 0, 0), counter=3, precision=precision),
+                  _frame((2.0, 0, 0, 0), good_acc, counter=4, precision=precision),  # a norm of 2: no rotation
+                  _frame(good_q, good_acc, counter=5, precision=precision)]  # fmt: skip
+        got = decode(d, [RawPacket(k, f) for k, f in enumerate(frames)])
+        assert [g.counter for g in got] == [0, 1, 2, 3, 4, 5]  # counters and times are kept
+        for g in got:
+            for v in (g.orientation, g.acceleration, g.rate_of_turn, g.magnetic_field):
+                assert np.isfinite(v).all() or np.isnan(v).all()
+        assert [bool(np.isnan(g.orientation).all()) for g in got] == [False, True, True, False, True, False]
+        assert [bool(np.isnan(g.acceleration).all()) for g in got] == [False, False, True, True, False, False]
+        assert np.isnan(got[3].magnetic_field).all() and np.isfinite(got[3].rate_of_turn).all()
+        c = d.counters
+        assert c["bad_quaternion"] == 3 and c["bad_vector"] == 3 and c["incomplete"] == 0 and c["samples"] == 6
+        np.testing.assert_allclose(got[5].orientation, from_zup_wxyz(*good_q), atol=1e-7)
+        # the slow path (a frame of a length never seen) checks alike
+        d2 = XbusDecoder("imu")
+        (g,) = decode(d2, [RawPacket(0, _frame((nan, 0, 0, 0), (inf, 0, 0), precision=precision))])
+        assert np.isnan(g.orientation).all() and np.isnan(g.acceleration).all()
+        assert d2.counters["bad_quaternion"] == 1 and d2.counters["bad_vector"] == 1
+
+
 def test_sample_time_fine_and_packet_counter_unwrap():
     base = imu_samples(0.2, first_counter=65500)
     wrap_ticks = 2**32
