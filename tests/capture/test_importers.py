@@ -4,6 +4,7 @@ suit stream, malformed files fail with specific messages, MVNX is read in flat m
 
 from __future__ import annotations
 
+import logging
 import re
 import tracemalloc
 import xml.etree.ElementTree as ET
@@ -232,6 +233,132 @@ def test_mvnx_not_an_mvnx_file(tmp_path):
         read_mvnx(tmp_path / "missing.mvnx")
 
 
+def refused(read, path) -> tuple[str, int]:
+    """The message of the FormatError ``read(path)`` raises, and the peak traced memory meanwhile (bytes)."""
+    tracemalloc.start()
+    try:
+        with pytest.raises(FormatError) as e:
+            read(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return str(e.value), peak
+
+
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        ('sensorCount="17"', 'sensorCount="100000000"',
+         "<frames> claims 100,000,000 items per frame (sensorCount); more than any MVN setup has (at most 1000)"),
+        ('jointCount="22"', 'jointCount="1000000"', "<frames> claims 1,000,000 items per frame (jointCount)"),
+        ('jointCount="22"', 'jointCount="-5"', "<frames jointCount='-5'> is not a whole number of items"),
+        ('sensorCount="17"', 'sensorCount="1e9"', "<frames sensorCount='1e9'> is not a whole number of items"),
+        ('sensorCount="17"', 'sensorCount="999"', ("frame 0 (index='0', time='0' ms): <sensorFreeAcceleration> "
+                                                   "holds 51 values, expected 2997 (3 per sensor x 999 sensors)")),
+    ],
+)  # fmt: skip
+def test_mvnx_counts_are_checked_before_they_size_anything(tmp_path, mvnx_file, old, new, message):
+    """A count in <frames> sizes no array until it is plausible and the first normal frame holds the
+    values it implies: a bad claim is a FormatError, read in little memory from this 1.2 MB file."""
+    text = mvnx_file.read_text()
+    assert text.count(old) == 1
+    bad = tmp_path / "claims.mvnx"
+    bad.write_text(text.replace(old, new))
+    msg, peak = refused(read_mvnx, bad)
+    assert message in msg and "(fix: " in msg
+    assert peak < 16 << 20, peak
+
+
+def test_cli_import_of_a_false_count_is_a_clear_error(tmp_path, mvnx_file):
+    bad = tmp_path / "bomb.mvnx"
+    bad.write_text(mvnx_file.read_text().replace('sensorCount="17"', 'sensorCount="400000000"'))
+    ws = tmp_path / "ws"
+    run("init", ws)
+    before = snapshot(ws)
+    r = run("import", ws, bad)
+    assert r.exit_code == 2 and "error: " in r.output and "claims 400,000,000 items per frame" in r.output
+    assert snapshot(ws) == before
+
+
+LAUGHS = ('<!DOCTYPE mvnx [<!ENTITY lol "lol">' + "".join(f'<!ENTITY lol{i} "{("&lol%s;" % (i - 1 or "")) * 10}">'
+                                                        for i in range(1, 10)) + "]>", "&lol9;")  # fmt: skip
+# 2 KB declaring 1 MB: within expat's own amplification limits, so only defusedxml's refusal stops it
+QUIET_EXPANSION = ('<!DOCTYPE mvnx [<!ENTITY a "' + "a" * 1000 + '"><!ENTITY b "' + "&a;" * 1000 + '">]>', "&b;")
+
+
+@pytest.mark.parametrize("doctype, ref, message", [
+    (*LAUGHS, "declares an XML entity ('lol'); refused: MVN never writes entities"),
+    (*QUIET_EXPANSION, "declares an XML entity ('a'); refused"),
+    ('<!DOCTYPE mvnx [<!ENTITY xxe SYSTEM "file://{secret}">]>', "&xxe;",
+     "declares an XML entity ('xxe', external: 'file://{secret}'); refused"),
+    ('<!DOCTYPE mvnx [<!ENTITY % xxe SYSTEM "file://{secret}"> %xxe;]>', "",
+     "declares an XML entity ('xxe', external: 'file://{secret}'); refused"),
+])  # fmt: skip
+def test_mvnx_entities_are_refused_not_expanded(tmp_path, mvnx_file, doctype, ref, message):
+    secret = tmp_path / "secret.txt"
+    secret.write_text("TOP-SECRET")
+    text = mvnx_file.read_text().replace("<mvnx ", doctype.format(secret=secret) + "\n<mvnx ", 1)
+    bad = tmp_path / "entities.mvnx"
+    bad.write_text(text.replace("<comment></comment>", f"<comment>{ref}</comment>", 1))
+    msg, peak = refused(read_mvnx, bad)
+    assert message.format(secret=secret) in msg and "TOP-SECRET" not in msg
+    assert peak < 16 << 20, peak
+
+
+def test_mvnx_doctype_without_entities_reads_and_fetches_nothing(tmp_path, mvnx_file):
+    text = mvnx_file.read_text().replace("<mvnx ", f'<!DOCTYPE mvnx SYSTEM "file://{tmp_path}/absent.dtd">\n<mvnx ', 1)
+    path = tmp_path / "doctype.mvnx"
+    path.write_text(text)
+    assert read_mvnx(path).num_frames == 121
+
+
+def test_mvnx_nesting_and_element_floods_are_bounded(tmp_path, mvnx_file):
+    """Elements nest at most 32 deep; a frame holds at most 100,000 elements; elements outside frames and
+    <subject> sections are dropped as soon as they close, so 50,000 of them take no more memory than 3
+    (beyond the parser's queue of one 64 KiB chunk)."""
+    text = mvnx_file.read_text()
+    bad = tmp_path / "deep.mvnx"
+    bad.write_text(text.replace("<comment></comment>", "<comment>" + "<a>" * 40 + "</a>" * 40 + "</comment>", 1))
+    with pytest.raises(FormatError, match=r"elements nested more than 32 deep \(<a> inside mvnx > comment > a > a"):
+        read_mvnx(bad)
+    bad.write_text(text.replace('ms="1700000000000" type="normal">', 'ms="1700000000000" type="normal">'
+                                + "<x/>" * 100_001, 1))  # fmt: skip
+    with pytest.raises(FormatError, match="more than 100,000 elements inside mvnx > subject > frames > frame"):
+        read_mvnx(bad)
+    peaks = []
+    for n in (3, 50_000):
+        path = tmp_path / f"flood{n}.mvnx"
+        path.write_text(text.replace("<comment></comment>", "<comment>" + "<x/>" * n + "</comment>", 1))
+        tracemalloc.start()
+        try:
+            assert read_mvnx(path).num_frames == 121
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+    assert peaks[1] < peaks[0] + (3 << 20), peaks
+
+
+def test_mvnx_times_and_clocks_out_of_range(tmp_path, mvnx_file):
+    """A time whose nanoseconds do not fit int64 is a FormatError; an index or wall clock out of range
+    reads as absent (-1), and an import keeps the take without a start time."""
+    text = mvnx_file.read_text()
+    bad = tmp_path / "time.mvnx"
+    bad.write_text(text.replace('time="667" index="40"', 'time="1e300" index="40"'))
+    msg, _ = refused(read_mvnx, bad)
+    assert "frame 40 (index='40', time='1e300' ms) has a time that is not finite or beyond 9.2e+12 ms" in msg
+    bad.write_text(text.replace('time="667" index="40"', 'time="nan" index="40"'))
+    assert "frame 40 (index='40', time='nan' ms) has a time that is not finite" in refused(read_mvnx, bad)[0]
+    odd = tmp_path / "clocks.mvnx"
+    odd.write_text(text.replace(' index="40" ', ' index="99999999999999999999" ')
+                   .replace('ms="1700000000000"', 'ms="9000000000000000"'))  # fmt: skip
+    mf = read_mvnx(odd)
+    assert mf.frame_index[40] == -1 and mf.frame_index[41] == 41 and mf.epoch_ms[0] == 9_000_000_000_000_000
+    with Workspace.init(tmp_path / "ws") as ws:
+        r = import_file(ws, odd)
+        assert ws.take(r.take).start_time is None
+        assert "the first frame's wall clock (ms=9000000000000000) is not a date; no start time" in r.notes
+
+
 @pytest.mark.slow
 def test_mvnx_reading_streams_in_flat_memory(tmp_path, suit):
     """What parsing holds beyond its preallocated output (sampled after every chunk) stays the
@@ -359,6 +486,13 @@ def test_bvh_kinematics_by_hand(tmp_path):
         (lambda t: t.replace("45 60", "45 sixty"), "line 19: frame 1, value 5: 'sixty' is not a number"),
         (lambda t: t.replace("Frame Time: 0.04", "Frame Time: 0"), "line 17: Frame Time must be a positive number"),
         (lambda t: t.replace("HIERARCHY", "HIERARCHIE"), "line 1: expected HIERARCHY, found 'HIERARCHIE'"),
+        # counts as ASCII digits (Python's int() takes other digits, or refuses over 4300 of them)
+        (lambda t: t.replace("Frames: 2", "Frames: \u00b2"), "line 16: Frames must be a whole number, got '\u00b2'"),
+        (lambda t: t.replace("Frames: 2", "Frames: " + "9" * 5000), "line 16: Frames must be a whole number"),
+        (lambda t: t.replace("CHANNELS 2 Xrotation", "CHANNELS \u00b2 Xrotation"),
+         "line 8: CHANNELS needs a count (a whole number), got ['\u00b2']"),
+        (lambda t: t.replace("Frame Time: 0.04", "Frame Time: 0.000000001"),
+         "line 17: Frame Time 1e-09 s is not a plausible frame interval (1e-06 to 3600 s)"),
     ],
 )
 def test_bvh_malformed_files(tmp_path, edit, message):
@@ -367,6 +501,61 @@ def test_bvh_malformed_files(tmp_path, edit, message):
     with pytest.raises(FormatError) as e:
         parse_bvh(path)
     assert message in str(e.value) and str(path) in str(e.value)
+
+
+def test_bvh_non_finite_values_are_marked_invalid_counted_and_warned(tmp_path, caplog):
+    """As in MVNX files: a NaN or infinite motion value makes the joint's orientation (and so its
+    descendants') or position invalid in that frame, counted in ``meta`` and logged; the rest reads as usual."""
+    clean = tmp_path / "clean.bvh"
+    clean.write_text(HAND_BVH)
+    ref = read_bvh(clean, scale=0.01)
+    path = tmp_path / "nan.bvh"
+    path.write_text(HAND_BVH.replace("30 10 20 30 45 60 90 -15", "nan 10 20 30 45 60 90 -15"))  # the root's Yrotation
+    with caplog.at_level(logging.WARNING):
+        tr = read_bvh(path, scale=0.01)
+    np.testing.assert_array_equal(tr.orientation_valid, [[True, True], [False, False]])
+    np.testing.assert_array_equal(tr.position_valid, [[True, True], [True, False]])
+    assert (tr.meta["invalid_orientations"], tr.meta["invalid_positions"], tr.meta["nonfinite_values"]) == (2, 1, 1)
+    assert "2 orientations and 1 positions not finite marked invalid (NaN or infinite motion values: 1)" in caplog.text
+    np.testing.assert_array_equal(tr.orientations[0], ref.orientations[0])
+    np.testing.assert_array_equal(tr.positions[0], ref.positions[0])
+    np.testing.assert_array_equal(tr.positions[1, 0], ref.positions[1, 0])
+    assert np.isnan(tr.orientations[1]).all() and np.isnan(tr.positions[1, 1]).all()
+    path.write_text(HAND_BVH.replace("90 -15", "inf -15"))  # a leaf's rotation: its orientation only
+    tr = read_bvh(path, scale=0.01)
+    np.testing.assert_array_equal(tr.orientation_valid, [[True, True], [True, False]])
+    assert tr.position_valid.all() and (tr.meta["invalid_orientations"], tr.meta["invalid_positions"]) == (1, 0)
+    with Workspace.init(tmp_path / "ws") as ws:
+        r = import_file(ws, path, scale=0.01)
+        assert "1 orientations and 0 positions were not valid and are marked invalid" in r.notes
+        assert SkeletonTrack.load(r.track_path).orientation_valid.sum() == 3
+
+
+def test_bvh_poses_beyond_what_the_file_holds_are_refused(tmp_path):
+    """Joints without channels cost track memory without bytes: 1001 joints x 20,000 frames from 80 KB
+    would be 20 million poses (over 2 GB computed); refused before anything is sized."""
+    joints = "".join(f"JOINT j{k}\n{{\nOFFSET 0 1 0\n}}\n" for k in range(1000))
+    path = tmp_path / "bare.bvh"
+    path.write_text("HIERARCHY\nROOT r\n{\nOFFSET 0 0 0\nCHANNELS 1 Yrotation\n" + joints + "}\nMOTION\n"
+                    "Frames: 20000\nFrame Time: 0.01\n" + "0\n" * 20000)  # fmt: skip
+    msg, peak = refused(read_bvh, path)
+    size = path.stat().st_size
+    assert (f"1001 joints x 20000 frames = 20,020,000 poses from a {size:,}-byte file: more than 1 per byte "
+            "(1000 joints have no channels)") in msg  # fmt: skip
+    assert peak < 32 << 20, peak
+
+
+def test_bvh_deep_hierarchy_reads_without_recursion(tmp_path):
+    depth = 1500
+    text = ["HIERARCHY", "ROOT r", "{", "OFFSET 0 0 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    for k in range(depth):
+        text += [f"JOINT j{k}", "{", "OFFSET 0 1 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    text += ["}"] * (depth + 1) + ["MOTION", "Frames: 1", "Frame Time: 0.01", " ".join(["0"] * (3 * depth + 3))]
+    path = tmp_path / "deep.bvh"
+    path.write_text("\n".join(text) + "\n")
+    tr = read_bvh(path, scale=0.01)
+    assert len(tr.segment_names) == depth + 1 and tr.meta["parents"][-1] == f"j{depth - 2}"
+    np.testing.assert_allclose(tr.positions[0, -1], [0.0, depth * 0.01, 0.0], atol=1e-9)
 
 
 # --------------------------------------------------------------------------------------------- import

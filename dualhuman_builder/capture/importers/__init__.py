@@ -144,12 +144,12 @@ def import_file(ws, path: str | Path, *, take: str | None = None, actor: str | N
         arrays = tuple(mf.arrays)
         extras = _mvnx_extras(mf)
         if mf.num_frames and mf.epoch_ms[0] > 0:
-            start_time = _dt.datetime.fromtimestamp(int(mf.epoch_ms[0]) / 1000.0, _dt.timezone.utc).isoformat()
+            try:
+                start_time = _dt.datetime.fromtimestamp(int(mf.epoch_ms[0]) / 1000.0, _dt.timezone.utc).isoformat()
+            except (ValueError, OverflowError, OSError):  # a wall clock beyond the calendar: no start time
+                notes.append(f"the first frame's wall clock (ms={int(mf.epoch_ms[0])}) is not a date; no start time")
         meta.update({"mvn_version": mf.mvn_version, "rec_date": mf.subject.get("recDate", "")})
         notes.append(track.meta["host_time"])
-        if track.meta.get("invalid_orientations") or track.meta.get("invalid_positions"):
-            notes.append(f"{track.meta['invalid_orientations']} orientations and {track.meta['invalid_positions']} "
-                         "positions were not valid and are marked invalid")  # fmt: skip
     else:
         if progress is not None:
             progress(f"reading {path.name}")
@@ -157,6 +157,9 @@ def import_file(ws, path: str | Path, *, take: str | None = None, actor: str | N
         calibration, subject, arrays = (), "", ()
         meta.update({"units": track.meta["units"], "scale": track.meta["scale"], "up": up})
         notes += [track.meta["scale_note"], track.meta["host_time"]]
+    if track.meta.get("invalid_orientations") or track.meta.get("invalid_positions"):
+        notes.append(f"{track.meta['invalid_orientations']} orientations and {track.meta['invalid_positions']} "
+                     "positions were not valid and are marked invalid")  # fmt: skip
     track.actor = actor or ""
     meta.update({"fps": track.fps, "segment_count": len(track.segment_names), "subject_label": subject,
                  "calibration_poses": list(calibration), "arrays": list(arrays), "notes": notes})  # fmt: skip

@@ -24,14 +24,28 @@ a Z-up file with :data:`~dualhuman_builder.conventions.ZUP_TO_YUP`. Times: frame
 ``k / fps`` on both clocks (a BVH file has one clock: ``fps`` = 1 / Frame Time, snapped to an
 integer rate when within 1e-4 of one).
 
+Counts are never trusted for allocation: ``Frames:`` and ``CHANNELS n`` must be whole numbers (ASCII
+digits) and agree with the frame lines and channel names present before any array is made, and the
+track's frames x joints poses may not exceed :data:`POSES_PER_BYTE` per byte of the file (joints
+without channels cost memory without bytes). ``Frame Time`` must lie within :data:`FRAME_TIME_RANGE`
+and the last frame's time fit int64 nanoseconds. The hierarchy is read without recursion, however
+deep.
+
+Values that are not finite (``nan``, ``inf``) are read, as in MVNX files: a joint whose rotation
+channels are not all finite has no valid orientation in that frame, nor have its descendants; a
+position that is not finite (its own channels, or a parent's orientation, or overflow) is invalid.
+Invalid entries are NaN under a False validity mask, counted in ``meta`` (``invalid_orientations``,
+``invalid_positions``, ``nonfinite_values``) and logged as a warning.
+
 Bad files raise :class:`~dualhuman_builder.errors.FormatError` with the line number: missing or
 extra braces, unknown keywords or channels, a CHANNELS count that disagrees with the names
 listed, a motion line with the wrong number of values or a non-number, fewer or more frame lines
-than ``Frames:`` declares.
+than ``Frames:`` declares, more poses than the file's size allows.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +54,17 @@ import numpy as np
 
 from dualhuman_builder.errors import FormatError
 from dualhuman_builder.tracks import SkeletonTrack
+
+log = logging.getLogger(__name__)
+
+#: Most track poses (frames x joints) per byte of the file, beyond :data:`MIN_POSES`: a joint's values in a
+#: frame take 6 bytes or more ("0 0 0 "), a pose about 60 bytes in the track.
+POSES_PER_BYTE = 1
+MIN_POSES = 10_000
+#: Frame Time (seconds) accepted: 1 MHz to one frame per hour.
+FRAME_TIME_RANGE = (1e-6, 3600.0)
+#: Most digits of ``Frames:`` and of a ``CHANNELS`` count.
+_MAX_DIGITS = 12
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 _CHANNELS = {c.lower(): c for c in CHANNEL_NAMES}
@@ -74,11 +99,16 @@ class BvhFile:
 
 
 class _Joint:  # mutable while parsing
-    def __init__(self, name, parent, line):
-        self.name, self.parent, self.line = name, parent, line
+    def __init__(self, name, parent, line, index):
+        self.name, self.parent, self.line, self.index = name, parent, line, index
         self.offset = None
         self.channels: tuple[str, ...] | None = None
         self.end_site = None
+
+
+def _whole(text: str) -> int | None:
+    """``text`` as a whole number when it is 1 to :data:`_MAX_DIGITS` ASCII digits, else None."""
+    return int(text) if text.isascii() and text.isdigit() and len(text) <= _MAX_DIGITS else None
 
 
 def _err(path: Path, line: int | None, message: str, fix: str | None = None) -> FormatError:
@@ -117,6 +147,7 @@ def parse_bvh(path: str | Path) -> BvhFile:
 
 def _parse_hierarchy(path: Path, toks: list[tuple[str, int]], end_line: int) -> list[BvhJoint]:
     joints: list[_Joint] = []
+    names: set[str] = set()
     stack: list[tuple[str, _Joint]] = []  # ("joint" | "end", joint)
     i, n = 1, len(toks)
 
@@ -154,12 +185,13 @@ def _parse_hierarchy(path: Path, toks: list[tuple[str, int]], end_line: int) -> 
             if not name_parts:
                 raise _err(path, ln, f"{up} without a name")
             name = " ".join(name_parts)
-            if any(j.name == name for j in joints):
+            if name in names:
                 raise _err(path, ln, f"a second joint named {name!r}")
             i += 1 + len(name_parts)
             expect_open(i, f"{up} {name}")
-            joint = _Joint(name, joints.index(stack[-1][1]) if stack else -1, ln)
+            joint = _Joint(name, stack[-1][1].index if stack else -1, ln, len(joints))
             joints.append(joint)
+            names.add(name)
             stack.append(("joint", joint))
             i += 1
         elif up == "END":
@@ -194,20 +226,21 @@ def _parse_hierarchy(path: Path, toks: list[tuple[str, int]], end_line: int) -> 
                 raise _err(path, ln, "CHANNELS outside a joint" if not stack else "CHANNELS in an End Site")
             joint = stack[-1][1]
             rest = same_line_after(i)
-            if not rest or not rest[0].isdigit():
-                raise _err(path, ln, f"CHANNELS needs a count, got {rest[:1]}")
-            count, names = int(rest[0]), rest[1:]
-            if len(names) != count:
-                raise _err(path, ln, f"CHANNELS declares {count} channels but lists {len(names)}: {' '.join(names)}")
-            unknown = [c for c in names if c.lower() not in _CHANNELS]
+            count = _whole(rest[0]) if rest else None
+            if count is None:
+                raise _err(path, ln, f"CHANNELS needs a count (a whole number), got {[r[:20] for r in rest[:1]]}")
+            listed = rest[1:]
+            if len(listed) != count:
+                raise _err(path, ln, f"CHANNELS declares {count} channels but lists {len(listed)}: {' '.join(listed)}")
+            unknown = [c for c in listed if c.lower() not in _CHANNELS]
             if unknown:
                 raise _err(path, ln, f"unknown channel {unknown[0]!r}; channels are {', '.join(CHANNEL_NAMES)}")
             if joint.channels is not None:
                 raise _err(path, ln, f"a second CHANNELS for joint {joint.name!r}")
-            joint.channels = tuple(_CHANNELS[c.lower()] for c in names)
+            joint.channels = tuple(_CHANNELS[c.lower()] for c in listed)
             positions = [c for c in joint.channels if c.endswith("position")]
             if len(set(positions)) != len(positions):
-                raise _err(path, ln, f"a position channel is repeated: {' '.join(names)}")
+                raise _err(path, ln, f"a position channel is repeated: {' '.join(listed)}")
             i += 1 + len(rest)
         elif tok == "}":
             if not stack:
@@ -244,15 +277,22 @@ def _parse_motion_header(path: Path, lines: list[str], motion_line: int) -> tupl
         values[key] = (value.strip(), k + 1)
         k += 1
     (frames_text, frames_ln), (ft_text, ft_ln) = values["frames"], values["frame time"]
-    if not frames_text.isdigit():
-        raise _err(path, frames_ln, f"Frames must be a whole number, got {frames_text!r}")
+    frames = _whole(frames_text)
+    if frames is None:
+        raise _err(path, frames_ln, f"Frames must be a whole number, got {frames_text[:40]!r}")
     try:
         frame_time = float(ft_text)
     except ValueError:
         frame_time = math.nan
     if not (math.isfinite(frame_time) and frame_time > 0):
-        raise _err(path, ft_ln, f"Frame Time must be a positive number of seconds, got {ft_text!r}")
-    return frame_time, int(frames_text), k
+        raise _err(path, ft_ln, f"Frame Time must be a positive number of seconds, got {ft_text[:40]!r}")
+    low, high = FRAME_TIME_RANGE
+    if not low <= frame_time <= high:
+        raise _err(path, ft_ln, f"Frame Time {frame_time:g} s is not a plausible frame interval "
+                                f"({low:g} to {high:g} s)")  # fmt: skip
+    if frames * frame_time * 1e9 >= 2**63:
+        raise _err(path, frames_ln, f"{frames} frames of {frame_time:g} s last beyond the int64 nanosecond range")
+    return frame_time, frames, k
 
 
 def _parse_motion(path: Path, lines: list[str], start: int, frames: int, C: int, J: int) -> np.ndarray:
@@ -291,12 +331,13 @@ def _detect_scale(joints: tuple[BvhJoint, ...]) -> tuple[float, str, str]:
     """``(scale to metres, units, note)`` from the rest-pose extent of the skeleton."""
     rest = np.zeros((len(joints), 3))
     points = []
-    for i, j in enumerate(joints):
-        rest[i] = j.offset + (rest[j.parent] if j.parent >= 0 else 0.0)
-        points.append(rest[i])
-        if j.end_site is not None:
-            points.append(rest[i] + j.end_site)
-    extent = float(np.ptp(np.array(points), axis=0).max())
+    with np.errstate(over="ignore", invalid="ignore"):  # huge offsets: an infinite extent, read as mm
+        for i, j in enumerate(joints):
+            rest[i] = j.offset + (rest[j.parent] if j.parent >= 0 else 0.0)
+            points.append(rest[i])
+            if j.end_site is not None:
+                points.append(rest[i] + j.end_site)
+        extent = float(np.ptp(np.array(points), axis=0).max())
     if extent == 0.0:
         return 0.01, "cm", "the rest pose has no extent; assumed centimetres (pass scale= to choose)"
     scale, units = (1.0, "m") if extent <= 3.0 else (0.01, "cm") if extent <= 300.0 else (0.001, "mm")
@@ -320,8 +361,17 @@ def read_bvh(path: str | Path, *, scale: float | None = None, up: str = "y") -> 
             raise ValueError(f"scale must be a positive number, got {scale}")
         units, note = "given", f"scale {scale:g} to metres given by the caller"
     F, J = bvh.motion.shape[0], len(bvh.joints)
+    size = path.stat().st_size
+    if F * J > MIN_POSES + POSES_PER_BYTE * size:
+        bare = sum(not j.channels for j in bvh.joints)
+        raise _err(path, None, f"{J} joints x {F} frames = {F * J:,} poses from a {size:,}-byte file: more than "
+                               f"{POSES_PER_BYTE} per byte ({bare} joints have no channels)",
+                   fix="a BVH file holds a value per channel per frame; check where the file comes from, or "
+                       "re-export it")  # fmt: skip
     quat = np.zeros((F, J, 4))
     pos = np.zeros((F, J, 3))
+    ovalid = np.ones((F, J), dtype=bool)
+    pvalid = np.ones((F, J), dtype=bool)
     glob: list = [None] * J
     col = 0
     for j, joint in enumerate(bvh.joints):
@@ -338,17 +388,30 @@ def read_bvh(path: str | Path, *, scale: float | None = None, up: str = "y") -> 
             continue
         if len(axes) > 3:
             raise _err(path, joint.line, f"joint {joint.name!r} has {len(axes)} rotation channels; at most 3")
+        # Non-finite values: identity / zero in the arithmetic, the frame marked invalid for the joint (and,
+        # through its orientation, for its descendants).
+        angles = bvh.motion[:, cols]
+        rot_ok = np.isfinite(angles).all(axis=1)
+        t_ok = np.isfinite(t).all(axis=1)
+        t[~t_ok] = 0.0
         try:
-            local = Rotation.from_euler(axes, bvh.motion[:, cols], degrees=True) if axes else Rotation.identity(F)
+            local = (Rotation.from_euler(axes, np.where(rot_ok[:, None], angles, 0.0), degrees=True) if axes
+                     else Rotation.identity(F))  # fmt: skip
         except ValueError as e:
             raise _err(path, joint.line, f"rotation channels {axes} of joint {joint.name!r}: {e}") from None
         if joint.parent < 0:
             glob[j], pos[:, j] = local, t
+            ovalid[:, j], pvalid[:, j] = rot_ok, t_ok
         else:
-            parent = glob[joint.parent]
-            glob[j], pos[:, j] = parent * local, pos[:, joint.parent] + parent.apply(t)
+            p = joint.parent
+            parent = glob[p]
+            glob[j], pos[:, j] = parent * local, pos[:, p] + parent.apply(t)
+            ovalid[:, j] = ovalid[:, p] & rot_ok
+            pvalid[:, j] = pvalid[:, p] & ovalid[:, p] & t_ok
         quat[:, j] = glob[j].as_quat()
-    pos *= scale
+    with np.errstate(over="ignore", invalid="ignore"):  # huge offsets or values: not finite, marked invalid
+        pos *= scale
+        pvalid &= np.isfinite(pos).all(-1)
     if up == "z" and F:
         s = math.sqrt(0.5)
         zy = Rotation.from_quat([-s, 0.0, 0.0, s])  # ZUP_TO_YUP: -90 degrees about X
@@ -359,14 +422,22 @@ def read_bvh(path: str | Path, *, scale: float | None = None, up: str = "y") -> 
         fps = float(round(fps))
     t_ns = np.round(np.arange(F) * (1e9 / fps)).astype(np.int64)
     names = [j.name for j in bvh.joints]
+    bad_values = int(np.count_nonzero(~np.isfinite(bvh.motion)))
+    bad_o, bad_p = int(np.count_nonzero(~ovalid)), int(np.count_nonzero(~pvalid))
+    if bad_o or bad_p:
+        log.warning("%s: %d orientations and %d positions not finite marked invalid (NaN or infinite motion "
+                    "values: %d)", path, bad_o, bad_p, bad_values)  # fmt: skip
     meta = {"source": "bvh", "file": path.name, "units": units, "scale": scale, "scale_note": note, "up": up,
             "frame_time_s": bvh.frame_time, "host_time": HOST_TIME_NOTE,
             "parents": [names[j.parent] if j.parent >= 0 else None for j in bvh.joints],
             "offsets_m": [(j.offset * scale).tolist() for j in bvh.joints],
             "channels": [list(j.channels) for j in bvh.joints],
-            "end_sites_m": {j.name: (j.end_site * scale).tolist() for j in bvh.joints if j.end_site is not None}}  # fmt: skip
-    ovalid = np.isfinite(quat).all(-1)
-    pvalid = np.isfinite(pos).all(-1)
-    return SkeletonTrack(segment_names=names, orientations=np.where(ovalid[..., None], quat, np.nan),
-                         positions=pos, device_time_ns=t_ns, host_time_ns=t_ns, orientation_valid=ovalid,
-                         position_valid=pvalid, fps=fps, meta=meta)  # fmt: skip
+            "end_sites_m": {j.name: (j.end_site * scale).tolist() for j in bvh.joints if j.end_site is not None},
+            "invalid_orientations": bad_o, "invalid_positions": bad_p, "nonfinite_values": bad_values}  # fmt: skip
+    try:
+        return SkeletonTrack(segment_names=names, orientations=np.where(ovalid[..., None], quat, np.nan),
+                             positions=np.where(pvalid[..., None], pos, np.nan), device_time_ns=t_ns,
+                             host_time_ns=t_ns, orientation_valid=ovalid, position_valid=pvalid, fps=fps,
+                             meta=meta)  # fmt: skip
+    except ValueError as e:
+        raise _err(path, None, f"inconsistent skeleton: {e}") from None

@@ -28,28 +28,43 @@ Conversions (our conventions: Y-up world, metres, quaternions x y z w, int64 ns)
   ``device_time_ns``. An MVNX file carries no host receive clock, so ``host_time_ns`` is a copy
   of ``device_time_ns`` (the track's ``meta['host_time']`` says so).
 
-Streaming: the file is fed in chunks to :class:`xml.etree.ElementTree.XMLPullParser`; each frame is
-taken apart when it closes and removed from the tree, its texts are parsed by block (NumPy's C
-text reader) into arrays preallocated from the file size. Memory stays at the result arrays plus a
-few MB, whatever the length of the file.
+Streaming: the file is parsed by :func:`defusedxml.ElementTree.iterparse` (expat, with entity
+declarations and external references refused whatever the expat version: MVN never writes them, and
+entity expansion could fill memory); each frame is taken apart when it closes and removed from the
+tree, as is every element once read, and its texts are parsed by block (NumPy's C text reader) into
+arrays sized from the file size. Memory stays at the result arrays plus a few MB, whatever the
+length of the file.
+
+Counts are never trusted for allocation: ``<frames segmentCount sensorCount jointCount>`` must be
+whole numbers up to :data:`MAX_ITEMS`, ``segmentCount`` must match the segments listed, and the
+first normal frame must hold the values the counts imply before any array is made; the arrays then
+hold the frames the file's bytes can hold at that frame's size (a few times the file size at most)
+and grow as frames arrive. Elements nest at most :data:`MAX_DEPTH` deep and a frame or a
+``<subject>`` section holds at most :data:`MAX_ELEMENTS` elements.
 
 Bad files raise :class:`~dualhuman_builder.errors.FormatError` naming the file: malformed or
-truncated XML with the line and column and what was read so far; a frame whose element holds the
-wrong number of values, or a non-number, with the frame and the element; frames whose elements
-differ from the first normal frame's; times going backwards.
+truncated XML with the line and column and what was read so far; entity declarations, external
+references, an unknown encoding; a count that is not plausible or disagrees with the data; a frame
+whose element holds the wrong number of values, or a non-number, with the frame and the element;
+frames whose elements differ from the first normal frame's; times going backwards, not finite or
+beyond the int64 nanosecond range. Values that are not finite are read as they are: orientations
+that are not unit quaternions and positions that are not finite are marked invalid, counted in the
+track's ``meta`` (``invalid_orientations``, ``invalid_positions``) and logged as a warning.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+from xml.etree.ElementTree import ParseError
 from xml.parsers.expat import ErrorString
 
+import defusedxml.ElementTree as DET
 import numpy as np
+from defusedxml import DefusedXmlException, EntitiesForbidden, ExternalReferenceForbidden
 
 from dualhuman_builder.errors import FormatError
 from dualhuman_builder.tracks import SkeletonTrack
@@ -81,8 +96,25 @@ FRAME_FIELD_ORDER = ("orientation", "position", "velocity", "acceleration", "ang
 HOST_TIME_NOTE = "host_time_ns copies device_time_ns: an MVNX file carries no host receive clock"
 
 _S = math.sqrt(0.5)
+#: Most items of one kind (segments, sensors, joints, ergonomic joints) a frame may hold: a full MVN suit has
+#: 23 segments, 17 sensors, 22 joints; props and gloves add tens.
+MAX_ITEMS = 1000
+#: Deepest element nesting read (MVN nests 7 deep: mvnx > subject > segments > segment > points > point > pos_b).
+MAX_DEPTH = 32
+#: Most elements inside one frame or one ``<subject>`` section (``<segments>``, ``<joints>``, ...), which are
+#: held until they close.
+MAX_ELEMENTS = 100_000
+#: Frame times (ms) whose nanoseconds fit int64 (about 292 years either side of 0).
+MAX_TIME_MS = 9.2e12
+#: Most frames per second taken from ``frameRate``; a larger, non-finite or non-positive one is ignored.
+MAX_FPS = 100_000.0
+
+#: ``<subject>`` children read whole when they close.
+_SECTIONS = ("segments", "sensors", "joints", "ergonomicJointAngles", "footContactDefinition")
 _BLOCK = 512  # frames parsed per NumPy call
-_CHUNK = 1 << 18  # bytes fed to the XML parser at a time
+_CHUNK = 1 << 16  # bytes fed to the XML parser at a time (its events, and their elements, are queued per chunk)
+_PROGRESS_EVERY = 1 << 18  # bytes between progress calls
+_NAMES_CACHED = 4096  # tag names remembered (the file chooses how many there are)
 
 
 # --------------------------------------------------------------------------------------------- conversions
@@ -208,7 +240,11 @@ class _Reader:
         self.path = path
         self.total_bytes = total_bytes
         self.names: dict[str, str] = {}
-        self.stack: list[str] = []
+        self.stack: list[str] = []  # names of the open elements
+        self.elems: list = []  # the open elements
+        self.held = 0  # elements held in the open frame or <subject> section...
+        self.held_from = 0  # ...which closes when the stack is shorter than this
+        self.sections_read: set[str] = set()
         self.root_checked = False
         self.version = self.mvn_version = self.mvn_build = self.comment = ""
         self.subject: dict[str, str] = {}
@@ -217,7 +253,6 @@ class _Reader:
         self.joints: list[MvnxJoint] = []
         self.ergo: list[str] = []
         self.contacts: list[str] = []
-        self.frames_elem = None
         self.frames_attrib: dict[str, str] = {}
         self.calibration: dict[str, CalibrationPose] = {}
         self.fields: tuple[str, ...] | None = None
@@ -238,7 +273,9 @@ class _Reader:
     def name(self, tag: str) -> str:
         n = self.names.get(tag)
         if n is None:
-            n = self.names[tag] = tag.rpartition("}")[2]
+            n = tag.rpartition("}")[2]
+            if len(self.names) < _NAMES_CACHED:
+                self.names[tag] = n
         return n
 
     def summary(self) -> str:
@@ -254,34 +291,54 @@ class _Reader:
 
     # ------------------------------------------------------------------ events
     def handle(self, events) -> None:
-        stack = self.stack
+        """Take each ``(event, element)``; an element is removed from the tree once it is read, except
+        the children of an open frame or ``<subject>`` section, read when that closes."""
+        stack, elems = self.stack, self.elems
         for event, elem in events:
             name = self.names.get(elem.tag) or self.name(elem.tag)
             if event == "start":
                 if not self.root_checked:
                     self.check_root(name, elem)
+                if len(stack) >= MAX_DEPTH:
+                    raise self.error(f"elements nested more than {MAX_DEPTH} deep (<{name}> inside "
+                                     f"{' > '.join(stack[:6])} > ...); MVNX nests 7 deep")  # fmt: skip
+                if self.holds_children():
+                    if not self.held:
+                        self.held_from = len(stack)
+                    self.held += 1
+                    if self.held > MAX_ELEMENTS:
+                        raise self.error(f"more than {MAX_ELEMENTS:,} elements inside {' > '.join(stack)}")
                 stack.append(name)
+                elems.append(elem)
                 if name == "frames":
-                    self.frames_elem = elem
                     self.frames_attrib = dict(elem.attrib)
                     self.start_frames()
                 elif name == "subject" and len(stack) == 2:
                     self.subject = dict(elem.attrib)
                 continue
             stack.pop()
+            elems.pop()
             if name == "frame":
                 self.frame(elem)
-                if self.frames_elem is not None:
-                    del self.frames_elem[:]
             elif len(stack) == 2 and stack[1] == "subject":
                 self.subject_child(name, elem)
-                elem.clear()
             elif len(stack) == 1:
                 if name == "mvn":
                     self.mvn_version = elem.get("version", "")
                     self.mvn_build = elem.get("build", "")
                 elif name == "comment":
                     self.comment = (elem.text or "").strip()
+            if elems and not self.holds_children():
+                del elems[-1][:]  # read: off the tree
+            if len(stack) < self.held_from:
+                self.held = self.held_from = 0
+
+    def holds_children(self) -> bool:
+        """Whether the innermost open element keeps its children until it closes: a frame, or an
+        element of a ``<subject>`` section (see :data:`_SECTIONS`)."""
+        stack = self.stack
+        return bool(stack) and (stack[-1] == "frame" or (len(stack) >= 3 and stack[1] == "subject"
+                                                         and stack[2] in _SECTIONS))  # fmt: skip
 
     def check_root(self, name: str, elem) -> None:
         self.root_checked = True
@@ -294,6 +351,11 @@ class _Reader:
         self.version = elem.get("version", "")
 
     def subject_child(self, name: str, elem) -> None:
+        if name in _SECTIONS and self.count is not None:
+            raise self.error(f"<{name}> after <frames>: the frames were read with the definitions before them")
+        if name in _SECTIONS and name in self.sections_read:
+            raise self.error(f"a second <{name}> in <subject>")
+        self.sections_read.add(name)
         if name == "segments":
             for seg in elem:
                 if self.name(seg.tag) != "segment":
@@ -336,16 +398,24 @@ class _Reader:
             raise self.error(f"{what} holds a value that is not a number: {(text or '')[:80]!r}") from None
 
     def counts(self) -> dict[str, int]:
-        """Items per frame of each kind, from <frames> (falling back on the lists in <subject>)."""
+        """Items per frame of each kind, from <frames> (falling back on the lists in <subject>): whole
+        numbers up to :data:`MAX_ITEMS`; the first normal frame checks them against its values."""
         out = {}
         for key, listed in (("segmentCount", self.segments), ("sensorCount", self.sensors),
                             ("jointCount", self.joints)):  # fmt: skip
             value = self.frames_attrib.get(key)
-            try:
-                out[key] = int(value) if value not in (None, "") else len(listed)
-            except ValueError:
-                raise self.error(f"<frames {key}={value!r}> is not an integer") from None
+            if value in (None, ""):
+                out[key] = len(listed)
+                continue
+            text = value.strip()
+            if not (text.isascii() and text.isdigit() and len(text) <= 9):
+                raise self.error(f"<frames {key}={value[:40]!r}> is not a whole number of items")
+            out[key] = int(text)
         out["ergoCount"] = len(self.ergo)
+        for key, n in out.items():
+            if n > MAX_ITEMS:
+                raise self.error(f"<frames> claims {n:,} items per frame ({key}); more than any MVN setup has "
+                                 f"(at most {MAX_ITEMS})")  # fmt: skip
         return out
 
     def start_frames(self) -> None:
@@ -422,6 +492,12 @@ class _Reader:
                     self.widths.append(table[name] * count)
                     self.item_shapes.append((count, table[name]))
                     self.explain.append(f"{table[name]} per {what} x {count} {what}s")
+                    held = len((text or "").split())
+                    if held != self.widths[-1]:  # checked before any array is sized from the count
+                        raise self.error(f"{self.frame_name(0, attrs.get('index'), attrs.get('time'))}: <{name}> "
+                                         f"holds {held} values, expected {self.widths[-1]} ({self.explain[-1]})",
+                                         fix=f"the count of {what}s ({key}) disagrees with the frames' values; "
+                                             "re-export the file from MVN Analyze/Animate")  # fmt: skip
                     break
             else:
                 width = len((text or "").split())
@@ -430,7 +506,9 @@ class _Reader:
                 self.explain.append("as many as in the first normal frame")
             est_bytes += len(text or "") + 2 * len(name) + 6
         self.pending = [[] for _ in names]
-        # Preallocate for the frames the rest of the file can hold (trimmed at the end).
+        # Preallocate for the frames the file's bytes can hold at this frame's size (trimmed at the end). Every
+        # width is that of values present in the file, each taking 2 bytes or more of text and 8 in memory: at
+        # most about 4x the file size.
         self.grow(int(self.total_bytes / max(est_bytes, 1) * 1.02) + 16)
 
     def grow(self, capacity: int) -> None:
@@ -482,9 +560,13 @@ class _Reader:
         for i, (t, idx, ms) in enumerate(self.pending_attrs):
             k = k0 + i
             try:
-                self.times[k] = float(t)
+                time = float(t)
             except (TypeError, ValueError):
                 raise self.error(f"{self.frame_name(k, idx, t)} has no numeric time attribute") from None
+            if not abs(time) <= MAX_TIME_MS:
+                raise self.error(f"{self.frame_name(k, idx, t)} has a time that is not finite or beyond "
+                                 f"{MAX_TIME_MS:g} ms (292 years)")  # fmt: skip
+            self.times[k] = time
             self.index[k] = _int_or(idx, -1)
             self.epoch[k] = _int_or(ms, -1)
         self.pending_attrs.clear()
@@ -508,11 +590,13 @@ class _Reader:
                              f"{times[k]:g} ms after {times[k - 1]:g} ms")  # fmt: skip
         t_ns = np.round(times * 1e6).astype(np.int64)
         fps = _float_or(self.subject.get("frameRate"), 0.0)
-        if not fps > 0 and T > 1:
-            fps = float(1e9 / np.median(np.diff(t_ns))) if np.median(np.diff(t_ns)) > 0 else 0.0
+        if not 0 < fps <= MAX_FPS:  # absent or not a rate: from the frame times
+            step = float(np.median(np.diff(t_ns))) if T > 1 else 0.0
+            fps = 1e9 / step if step > 0 else 0.0
         quat = self.out.pop("orientation")
         pos = self.out.pop("position")
-        norms = np.sqrt(np.einsum("tsk,tsk->ts", quat, quat))
+        with np.errstate(over="ignore", invalid="ignore"):  # huge or non-finite values: marked invalid below
+            norms = np.sqrt(np.einsum("tsk,tsk->ts", quat, quat))
         ovalid = np.isfinite(norms) & (np.abs(norms - 1.0) <= 1e-3)
         pvalid = np.isfinite(pos).all(-1)
         bad_o, bad_p = int((~ovalid).sum()), int((~pvalid).sum())
@@ -545,15 +629,18 @@ def _is_float(text: str) -> bool:
 
 
 def _int_or(text: str | None, default: int) -> int:
+    """``text`` as an int64 (a float is truncated), or ``default`` when it is absent, not a number or out
+    of int64's range."""
     if not text:
         return default
     try:
-        return int(text)
+        value = int(text)
     except ValueError:
         try:
-            return int(float(text))
-        except ValueError:
+            value = int(float(text))
+        except (ValueError, OverflowError):
             return default
+    return value if -(2**63) <= value < 2**63 else default
 
 
 def _float_or(text: str | None, default: float) -> float:
@@ -564,7 +651,7 @@ def _float_or(text: str | None, default: float) -> float:
 
 
 def read_mvnx(path: str | Path, progress: Callable[[int, int, int], None] | None = None) -> MvnxFile:
-    """Read an MVNX file streaming (see the module docstring for conversions and errors).
+    """Read an MVNX file streaming (see the module docstring for conversions, limits and errors).
 
     ``progress(frames, bytes_read, total_bytes)`` is called after each 256 KiB read.
     """
@@ -573,26 +660,81 @@ def read_mvnx(path: str | Path, progress: Callable[[int, int, int], None] | None
         raise FormatError("no such file", path=path, fix="check the path")
     total = path.stat().st_size
     reader = _Reader(path, total)
-    parser = ET.XMLPullParser(events=("start", "end"))
-    done, closing = 0, False
-    try:
-        with open(path, "rb") as f:
-            while chunk := f.read(_CHUNK):
-                parser.feed(chunk)
-                done += len(chunk)
-                reader.handle(parser.read_events())
-                if progress is not None:
-                    progress(reader.n + len(reader.pending_attrs), done, total)
-        closing = True
-        parser.close()
-        reader.handle(parser.read_events())
-    except ET.ParseError as e:
+    with open(path, "rb") as f:
+        source = _Source(f, reader, total, progress)
+        reader.handle(_events(source, reader))
+    return reader.finish()
+
+
+class _Source:
+    """The file as the parser reads it, :data:`_CHUNK` bytes at a time. ``progress`` is called on a read
+    every :data:`_PROGRESS_EVERY` bytes and at the end (every event of the bytes before has then been
+    handled), what it raises kept as ``failure``; ``eof`` once the file is all read."""
+
+    def __init__(self, f, reader: _Reader, total: int, progress: Callable[[int, int, int], None] | None):
+        self.f, self.reader, self.total, self.progress = f, reader, total, progress
+        self.done = self.reported = 0
+        self.eof = False
+        self.failure: BaseException | None = None
+
+    def read(self, size: int = -1) -> bytes:
+        chunk = self.f.read(_CHUNK)
+        if self.progress is not None and self.done and (not chunk or self.done - self.reported >= _PROGRESS_EVERY):
+            self.reported = self.done
+            try:
+                self.progress(self.reader.n + len(self.reader.pending_attrs), self.done, self.total)
+            except BaseException as e:
+                self.failure = e
+                raise
+        self.done += len(chunk)
+        self.eof = not chunk
+        return chunk
+
+
+#: What the XML parser raises on a file it refuses (``ValueError``, ``LookupError``: an encoding that
+#: expat cannot read through Python's codecs).
+_REFUSALS = (ParseError, DefusedXmlException, LookupError, ValueError)
+
+
+def _events(source: _Source, reader: _Reader):
+    """``(event, element)`` of the file, start and end; what the XML parser refuses becomes a
+    :class:`FormatError` (:func:`_refused`)."""
+    events = DET.iterparse(source, events=("start", "end"), forbid_dtd=False, forbid_entities=True,
+                           forbid_external=True)  # fmt: skip
+    while True:
+        try:
+            item = next(events, None)
+        except _REFUSALS as e:
+            if e is source.failure:
+                raise
+            raise _refused(e, source, reader) from None
+        if item is None:
+            return
+        yield item
+
+
+def _refused(e: Exception, source: _Source, reader: _Reader) -> FormatError:
+    """The :class:`FormatError` for what the XML parser raised: where it stopped and what was read."""
+    path = reader.path
+    fix = "re-export the file from MVN; do not import XML of unknown origin"
+    if isinstance(e, ParseError):
         line, col = e.position
         inside = " > ".join(reader.stack) or "no element"
-        what = "the file ends before its XML is complete" if closing else "malformed XML"
-        raise FormatError(
-            f"{what}: line {line}, column {col} ({ErrorString(e.code)}) inside {inside}; read so far: {reader.summary()}",
+        what = "the file ends before its XML is complete" if source.eof else "malformed XML"
+        return FormatError(
+            f"{what}: line {line}, column {col} ({ErrorString(e.code)}) inside {inside}; "
+            f"read so far: {reader.summary()}",
             path=path,
             fix="the file is truncated or not well-formed XML; re-export it from MVN",
-        ) from None
-    return reader.finish()
+        )
+    if isinstance(e, EntitiesForbidden):
+        what = f"{e.name!r}, external: {e.sysid!r}" if e.sysid else repr(e.name)
+        return FormatError(f"the file declares an XML entity ({what}); refused: MVN never writes entities, and "
+                           "expanding them can fill memory", path=path, fix=fix)  # fmt: skip
+    if isinstance(e, ExternalReferenceForbidden):
+        return FormatError(f"the file refers to an external resource ({e.sysid!r}); refused: an MVNX file is "
+                           "self-contained", path=path, fix=fix)  # fmt: skip
+    if isinstance(e, DefusedXmlException):
+        return FormatError(f"refused XML construct: {e}", path=path, fix=fix)
+    return FormatError(f"cannot read the file's text encoding: {e}", path=path,
+                       fix="re-export the file from MVN (UTF-8)")  # fmt: skip
