@@ -5,6 +5,10 @@ to disk, then renamed over the final name (``os.replace`` is atomic on POSIX). A
 mid-write leaves at most a ``.*.partial`` file, which no reader mistakes for a complete artifact
 and :func:`remove_partials` sweeps away.
 
+Confinement: a path read from a file (a manifest's file list, a split file's name) is resolved with
+:func:`confined_path` and read with :func:`open_confined` / :func:`read_confined`, so that it can
+only reach regular files inside the folder that file describes, and never more bytes than allowed.
+
 Container: a NumPy ``.npz`` (zip of ``.npy``) holding the arrays plus ``__meta__``, UTF-8 JSON
 bytes with ``kind`` (e.g. ``"SkeletonTrack"``), ``format_version`` and free metadata. Reading never
 unpickles (``allow_pickle=False``), so a file from someone else cannot run code.
@@ -17,8 +21,9 @@ import io
 import json
 import os
 import secrets
-from pathlib import Path
-from typing import Any, Iterator, Mapping
+import stat
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO, Iterator, Mapping
 
 import numpy as np
 
@@ -173,3 +178,72 @@ def load_npz(
     meta = header.get("meta", {})
     meta["_format_version"] = version
     return arrays, meta
+
+
+def _what(rel: object, what: str | None) -> str:
+    return what if what is not None else f"path {rel!r:.200}"
+
+
+def confined_path(folder: str | Path, rel: object, what: str | None = None) -> Path:
+    """Where ``rel``, a path read from a file that describes ``folder``, points, confined to ``folder``.
+
+    ``rel`` must be a non-empty relative POSIX path (text without NUL, backslash or ``..`` parts) that
+    still lies inside ``folder`` once symbolic links are resolved. Returns the resolved path (it need
+    not exist). FormatError otherwise, its message starting with ``what`` (default: ``path '<rel>'``):
+    whoever wrote the file must not make a reader open ``/etc/passwd``, ``/dev/zero`` or anything else
+    outside what they sent.
+    """
+    where, what = Path(folder), _what(rel, what)
+    if not isinstance(rel, str):
+        raise FormatError(f"{what}: must be a relative path (text), got {type(rel).__name__}", path=where)
+    parts = PurePosixPath(rel).parts
+    if not rel or "\x00" in rel or "\\" in rel or rel.startswith("/") or ".." in parts or not parts:
+        raise FormatError(f"{what}: not a relative path inside the folder (absolute, empty, '..' or a backslash)",
+                          path=where, fix="only paths relative to the folder, without '..', are allowed")  # fmt: skip
+    try:
+        root = where.resolve()
+        target = (root / rel).resolve()
+    except (OSError, RuntimeError) as e:  # RuntimeError: a symlink loop
+        raise FormatError(f"{what}: cannot be resolved ({e})", path=where) from None
+    if target == root or not target.is_relative_to(root):
+        raise FormatError(f"{what}: leads out of the folder (through a symbolic link)", path=where,
+                          fix="replace the link by the file it points to, or remove it")  # fmt: skip
+    return target
+
+
+def open_confined(folder: str | Path, rel: object, what: str | None = None) -> BinaryIO:
+    """``rel`` (see :func:`confined_path`) opened for reading in binary mode; FormatError unless it is
+    a regular file (a missing file, a folder, FIFO, device or socket is refused; a FIFO is opened
+    without blocking, so it cannot hang the reader)."""
+    target, what = confined_path(folder, rel, what), _what(rel, what)
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(target, flags)
+    except FileNotFoundError:
+        raise FormatError(f"{what}: missing", path=target) from None
+    except OSError as e:
+        raise FormatError(f"{what}: cannot be opened ({e.strerror})", path=target) from None
+    try:
+        regular = stat.S_ISREG(os.fstat(fd).st_mode)
+    except OSError:
+        regular = False
+    if not regular:
+        os.close(fd)
+        raise FormatError(f"{what}: not a regular file", path=target)
+    return os.fdopen(fd, "rb")
+
+
+def read_confined(folder: str | Path, rel: object, max_bytes: int, what: str | None = None) -> bytes:
+    """The bytes of ``rel`` (see :func:`open_confined`); FormatError, before reading, when the file holds
+    more than ``max_bytes`` bytes (and when it grows past them while read)."""
+    what = _what(rel, what)
+    with open_confined(folder, rel, what) as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > max_bytes:
+            raise FormatError(f"{what}: {size} bytes, more than the {max_bytes} allowed", path=Path(folder) / rel)
+        data = f.read(size + 1)  # read(n) allocates n bytes up front: ask for what fstat says is there
+        while size < len(data) <= max_bytes and (block := f.read(min(1 << 20, max_bytes + 1 - len(data)))):
+            data += block  # the file grew while read
+    if len(data) > max_bytes:
+        raise FormatError(f"{what}: grew past {max_bytes} bytes while read", path=Path(folder) / rel)
+    return data

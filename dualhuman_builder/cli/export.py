@@ -87,20 +87,24 @@ def annotate_import(workspace: Path, file: Path, annotator: str | None, skip_inv
     """Read annotations from FILE (.csv or .jsonl, UTF-8) into WORKSPACE's catalog.
 
     The whole file is checked first: takes and sequences exist, labels are in the vocabulary,
-    actor and reactor are actors of the take, the text is UTF-8. A row replaces the stored
+    actor and reactor are actors of the take, the text is UTF-8, annotated_at is ISO 8601, names
+    hold no control characters. A cell written as '=... (a formula escaped by `annotate export`)
+    is read back without its leading '. A row replaces the stored
     annotation of the same take, sequence and annotator; blank rows are skipped. The next
     `dualhuman export` carries the labels into the dataset.
 
     Example:  dualhuman annotate import WS labels.csv --annotator alice
     """
+    from rich.markup import escape
+
     from dualhuman_builder.export.annotate import import_annotations
     from dualhuman_builder.workspace import Workspace
 
     with Workspace.open(workspace) as ws:
         res = import_annotations(ws, file, annotator=annotator, skip_invalid=skip_invalid)
-    for line, msg in res["invalid"]:
-        console.print(f"[yellow]skipped[/] line {line}: {msg}", highlight=False)
-    console.print(f"{res['imported']} annotation(s) imported from {file} ({res['blank']} blank, "
+    for line, msg in res["invalid"]:  # the message quotes the file's text: never markup
+        console.print(f"[yellow]skipped[/] line {line}: {escape(msg)}", highlight=False, soft_wrap=True)
+    console.print(f"{res['imported']} annotation(s) imported from {escape(str(file))} ({res['blank']} blank, "
                   f"{len(res['invalid'])} invalid row(s) skipped)", highlight=False)  # fmt: skip
 
 
@@ -162,18 +166,22 @@ def export_build(workspace: Path, out: Path, takes: tuple[str, ...], split_ratio
 def export_verify(out: Path):
     """Check an exported dataset: every file's SHA-256 against the manifest, arrays against the
     schema (shapes, dtypes, no NaN), splits disjoint and complete, every sequence has what the
-    manifest promises. Never unpickles. Exit status 1 when a problem is found.
+    manifest promises, nothing else in the export. Safe on a damaged or hostile export: reads only
+    the files the manifest lists, inside OUT, with size caps; never unpickles. Exit status 1 when a
+    problem is found.
 
     Example:  dualhuman export verify WS/export
     """
+    from rich.markup import escape
+
     from dualhuman_builder.export.verify import verify_export
 
     problems = verify_export(out)
-    for p in problems:
-        console.print(f"[red]problem[/]: {p}", highlight=False)
+    for p in problems:  # names from the export: never markup, control characters shown escaped
+        console.print(f"[red]problem[/]: {escape(p if p.isprintable() else repr(p))}", highlight=False, soft_wrap=True)
     if problems:
         sys.exit(1)
-    console.print(f"[green]{out}: verified[/]", highlight=False)
+    console.print(f"[green]{escape(str(out))}: verified[/]", highlight=False)
 
 
 @export.command("shards")

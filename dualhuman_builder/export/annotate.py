@@ -8,17 +8,24 @@ Two formats, told apart by the file name:
   ``reactor``, ``symmetric`` (``true``/``false``/``yes``/``no``/``1``/``0``, empty: derived from
   the labels), ``annotator``, ``annotated_at`` (ISO 8601; empty: the import time), and one or
   more text columns whose names start with ``text`` (``text_1``, ``text_2``, ...), one
-  description each. Unknown columns are an error (a typo would otherwise lose data).
+  description each. Unknown columns are an error (a typo would otherwise lose data). A cell that
+  starts with a character a spreadsheet reads as a formula (``=``, ``+``, ``-``, ``@``, tab, CR,
+  LF; OWASP's advice on CSV injection) is written with a leading ``'``, which import removes, so
+  the text survives a round trip and no spreadsheet runs it (see :func:`escape_cell`).
 * **JSON Lines** (``.jsonl`` / ``.ndjson``): one object per line with the same keys; ``labels``
   and ``texts`` are lists of strings (``labels`` may also be a ``;``-separated string).
 
 Import checks the whole file before it stores anything: every row's take and sequence exist,
 labels are in the vocabulary (the built-in one plus ``WS/labels.toml``), actor and reactor are
-actors of the take, texts are valid UTF-8, and no (take, sequence, annotator) appears twice. Any
-problem is an error naming the line, unless ``skip_invalid`` (then the bad rows are counted and
-listed, the good ones stored). Rows with neither labels, texts nor roles are blank template rows
-and are skipped (counted). A row replaces the stored annotation of the same take, sequence and
-annotator, so re-importing an edited file updates it.
+actors of the take, texts are valid UTF-8, ``annotated_at`` is an ISO 8601 time, names (take,
+sequence, labels, actor, reactor, annotator) hold no control or format characters and texts no
+control characters but tab and line breaks, no value is longer than :data:`MAX_VALUE_CHARS`, and no
+(take, sequence, annotator) appears twice. Any problem is an error naming the line (a JSON line
+nested too deeply included), unless ``skip_invalid`` (then the bad rows are counted and listed, the
+good ones stored). A file over :data:`MAX_FILE_BYTES` or a CSV that does not parse is an error.
+Rows with neither labels, texts nor roles are blank template rows and are skipped (counted). A row
+replaces the stored annotation of the same take, sequence and annotator, so re-importing an edited
+file updates it.
 
 Export writes every stored annotation and, unless ``blank=False``, one blank row per take and per
 sequence that has none yet: the template to fill in.
@@ -26,11 +33,14 @@ sequence that has none yet: the template to fill in.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
 import json
 import os
+import unicodedata
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +51,59 @@ FIELDS = ("take", "sequence", "labels", "actor", "reactor", "symmetric", "annota
 _TRUE, _FALSE = {"true", "yes", "1", "y", "t"}, {"false", "no", "0", "n", "f"}
 #: Problems listed in an import error (the rest are counted).
 _MAX_LISTED = 12
+#: Largest annotation file import reads (bytes): far more than any labelling session writes.
+MAX_FILE_BYTES = 64 << 20
+#: Longest value (characters) of one cell or key: the csv module's own default field limit.
+MAX_VALUE_CHARS = 131072
+#: Unicode categories a name may not hold: control, format, surrogate, private use, line and
+#: paragraph separators (the workspace refuses the same).
+_UNSAFE_IN_NAMES = frozenset({"Cc", "Cf", "Cs", "Co", "Zl", "Zp"})
+#: First characters that make a spreadsheet read a cell as a formula (OWASP, "CSV Injection").
+FORMULA_START = frozenset("=+-@\t\r\n")
+
+
+def escape_cell(text: str) -> str:
+    """``text`` as a CSV cell no spreadsheet runs as a formula: a ``'`` is put before a text that
+    starts with a formula character (``=``, ``+``, ``-``, ``@``, tab, CR, LF), or with ``'``s and
+    then one, so that :func:`unescape_cell` gives back exactly ``text``."""
+    rest = text.lstrip("'")
+    return "'" + text if rest and rest[0] in FORMULA_START else text
+
+
+def unescape_cell(cell: str) -> str:
+    """Inverse of :func:`escape_cell`: one leading ``'`` removed where ``escape_cell`` adds one."""
+    rest = cell.lstrip("'")
+    return cell[1:] if cell.startswith("'") and rest and rest[0] in FORMULA_START else cell
+
+
+def _show(value: Any) -> str:
+    """A value from the file for a message: scalars shown (long text cut), containers only named."""
+    if value is None or isinstance(value, (bool, int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return repr(value[:60]) + (f"... ({len(value)} characters)" if len(value) > 60 else "")
+    return f"a {type(value).__name__}"
+
+
+def _show_all(values: list) -> str:
+    return "[" + ", ".join(_show(v) for v in values[:12]) + (", ...]" if len(values) > 12 else "]")
+
+
+def _check_chars(value: str, what: str, text: bool = False) -> str:
+    """``value`` unless it is too long or holds characters a name (``text``: a description) must not:
+    control characters (a text may hold tab and line breaks) and lone surrogates, and in names also
+    format (bidirectional overrides), private-use characters and line separators, which would reach
+    terminals and files raw."""
+    if len(value) > MAX_VALUE_CHARS:
+        raise ValueError(f"{what} is {len(value)} characters long, more than {MAX_VALUE_CHARS}")
+    for i, ch in enumerate(value):
+        cat = unicodedata.category(ch)
+        bad = cat in ("Cc", "Cs") and ch not in "\t\n\r" if text else cat in _UNSAFE_IN_NAMES
+        if bad:
+            kind = "control" if cat == "Cc" else "invisible or invalid"
+            raise ValueError(f"{what} holds the {kind} character {ch!r} (U+{ord(ch):04X}) at position {i + 1}; "
+                             "remove it")  # fmt: skip
+    return value
 
 
 def _format(path: Path) -> str:
@@ -64,6 +127,8 @@ def _decode(data: bytes, path: Path) -> str:
 def _bool(value: Any) -> bool | None:
     if value is None or isinstance(value, bool):
         return value
+    if not isinstance(value, (str, int)):
+        raise ValueError(f"symmetric must be true or false, got {_show(value)}")
     text = str(value).strip().lower()
     if not text:
         return None
@@ -71,25 +136,54 @@ def _bool(value: Any) -> bool | None:
         return True
     if text in _FALSE:
         return False
-    raise ValueError(f"symmetric must be true or false, got {value!r}")
+    raise ValueError(f"symmetric must be true or false, got {_show(value)}")
 
 
 def _labels(value: Any) -> list[str]:
     if value is None:
         return []
     if isinstance(value, str):
+        _check_chars(value, "labels")
         return [x.strip() for x in value.split(";") if x.strip()]
     if isinstance(value, list) and all(isinstance(x, str) for x in value):
-        return [x.strip() for x in value if x.strip()]
-    raise ValueError(f"labels must be a list of names or a ';'-separated string, got {value!r}")
+        return [_check_chars(x.strip(), "a label") for x in value if x.strip()]
+    raise ValueError(f"labels must be a list of names or a ';'-separated string, got {_show(value)}")
 
 
-def _text(value: Any, what: str) -> str | None:
+def _text(value: Any, what: str, text: bool = False) -> str | None:
+    """``value`` stripped (None when empty), checked as a name (``text``: as a description)."""
     if value is None:
         return None
     if not isinstance(value, str):
-        raise ValueError(f"{what} must be text, got {value!r}")
-    return value.strip() or None
+        raise ValueError(f"{what} must be text, got {_show(value)}")
+    return _check_chars(value.strip(), what, text) or None
+
+
+def _time(value: Any) -> str:
+    """``annotated_at``: an ISO 8601 date and time as given ("" when empty: the import time)."""
+    text = _text(value, "annotated_at")
+    if text is None:
+        return ""
+    try:
+        if len(text) > 64:
+            raise ValueError
+        datetime.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"annotated_at must be an ISO 8601 time such as 2026-11-01T10:00:00Z, got {_show(text)}") \
+            from None
+    return text
+
+
+@contextlib.contextmanager
+def _csv_cells_up_to(limit: int):
+    """Let the csv module parse cells of up to ``limit`` characters, so that a long cell is one
+    invalid row instead of a parse error that loses track of the rows after it."""
+    old = csv.field_size_limit()
+    csv.field_size_limit(max(old, limit))
+    try:
+        yield
+    finally:
+        csv.field_size_limit(old)
 
 
 def _records(text: str, fmt: str) -> list[tuple[int, dict[str, Any]]]:
@@ -104,32 +198,45 @@ def _records(text: str, fmt: str) -> list[tuple[int, dict[str, Any]]]:
             except json.JSONDecodeError as e:
                 out.append((i, {"_error": f"not JSON ({e.msg} at column {e.colno})"}))
                 continue
+            except RecursionError:
+                out.append((i, {"_error": "not JSON this reader takes (nested too deeply)"}))
+                continue
+            except ValueError as e:  # an integer over Python's digit limit
+                out.append((i, {"_error": f"not JSON this reader takes ({e})"}))
+                continue
             if not isinstance(obj, dict):
                 out.append((i, {"_error": "each line must be a JSON object"}))
                 continue
             extra = sorted(set(obj) - set(FIELDS) - {"texts"})
             texts = obj.get("texts", [])
             if extra:
-                obj = {"_error": f"unknown keys {extra} (known: {[*FIELDS, 'texts']})"}
+                obj = {"_error": f"unknown keys {_show_all(extra)} (known: {[*FIELDS, 'texts']})"}
             elif not isinstance(texts, list):
                 obj = {"_error": "texts must be a list of strings"}
             out.append((i, obj))
         return out
     reader = csv.DictReader(io.StringIO(text, newline=""))
-    header = reader.fieldnames or []
-    text_cols = [c for c in header if c and c.strip().lower().startswith("text")]
-    unknown = [c for c in header if c not in FIELDS and c not in text_cols]
-    if "take" not in header:
-        raise ValueError(f"the CSV header has no 'take' column (header: {header}); columns: {[*FIELDS, 'text_1', '...']}")
-    if unknown:
-        raise ValueError(f"unknown CSV columns {unknown} (known: {[*FIELDS, 'text_1', 'text_2', '...']})")
-    for row in reader:
-        if None in row:
-            out.append((reader.line_num, {"_error": f"{len(row[None])} more cells than header columns"}))
-            continue
-        rec: dict[str, Any] = {k: row.get(k) for k in FIELDS}
-        rec["texts"] = [row[c] for c in text_cols if row.get(c) and row[c].strip()]
-        out.append((reader.line_num, rec))
+    try:
+        with _csv_cells_up_to(len(text)):
+            header = reader.fieldnames or []
+            text_cols = [c for c in header if c and c.strip().lower().startswith("text")]
+            unknown = [c for c in header if c not in FIELDS and c not in text_cols]
+            if "take" not in header:
+                raise ValueError(f"the CSV header has no 'take' column (header: {_show_all(header)}); "
+                                 f"columns: {[*FIELDS, 'text_1', '...']}")  # fmt: skip
+            if unknown:
+                raise ValueError(f"unknown CSV columns {_show_all(unknown)} "
+                                 f"(known: {[*FIELDS, 'text_1', 'text_2', '...']})")  # fmt: skip
+            for row in reader:
+                if None in row:
+                    out.append((reader.line_num, {"_error": f"{len(row[None])} more cells than header columns"}))
+                    continue
+                row = {k: unescape_cell(v) if isinstance(v, str) else v for k, v in row.items()}
+                rec: dict[str, Any] = {k: row.get(k) for k in FIELDS}
+                rec["texts"] = [row[c] for c in text_cols if row.get(c) and row[c].strip()]
+                out.append((reader.line_num, rec))
+    except csv.Error as e:
+        raise ValueError(f"line {reader.line_num}: not CSV this reader takes ({e})") from None
     return out
 
 
@@ -139,11 +246,11 @@ def _parse(rec: dict[str, Any], default_annotator: str | None, source: str) -> A
     take = _text(rec.get("take"), "take")
     if take is None:
         raise ValueError("take is empty")
-    texts = [_text(t, "each text") for t in rec.get("texts") or []]
-    annotator = _text(rec.get("annotator"), "annotator") or default_annotator
+    texts = [_text(t, f"text {k + 1}", text=True) for k, t in enumerate(rec.get("texts") or [])]
+    annotator = _text(rec.get("annotator"), "annotator") or _text(default_annotator, "the annotator name")
     return Annotation(take, _text(rec.get("sequence"), "sequence"), annotator or "", tuple(_labels(rec.get("labels"))),
                       tuple(t for t in texts if t), _text(rec.get("actor"), "actor"), _text(rec.get("reactor"), "reactor"),
-                      _bool(rec.get("symmetric")), _text(rec.get("annotated_at"), "annotated_at") or "", source)  # fmt: skip
+                      _bool(rec.get("symmetric")), _time(rec.get("annotated_at")), source)  # fmt: skip
 
 
 def import_annotations(ws, path: str | Path, annotator: str | None = None, skip_invalid: bool = False,
@@ -159,9 +266,17 @@ def import_annotations(ws, path: str | Path, annotator: str | None = None, skip_
     path = Path(path)
     fmt = _format(path)
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as f:  # in blocks: read(n) would set aside n bytes whatever the file holds
+            blocks, size = [], 0
+            while size <= MAX_FILE_BYTES and (block := f.read(1 << 20)):
+                blocks.append(block)
+                size += len(block)
+        data = b"".join(blocks)
     except OSError as e:
         raise WorkspaceError(f"cannot read the annotation file ({e.strerror})", path=path) from None
+    if len(data) > MAX_FILE_BYTES:
+        raise WorkspaceError(f"more than {MAX_FILE_BYTES >> 20} MiB, larger than an annotation file can be", path=path,
+                             fix="split it into several files and import each")  # fmt: skip
     try:
         records = _records(_decode(data, path), fmt)
     except ValueError as e:
@@ -221,8 +336,8 @@ def _csv_text(rows: list[Annotation]) -> str:
     w.writerow([*FIELDS, *(f"text_{k + 1}" for k in range(n_text))])
     for a in rows:
         sym = "" if a.symmetric is None else str(a.symmetric).lower()
-        w.writerow([a.take, a.sequence or "", ";".join(a.labels), a.actor or "", a.reactor or "", sym, a.annotator,
-                    a.annotated_at, *a.texts, *([""] * (n_text - len(a.texts)))])  # fmt: skip
+        w.writerow([escape_cell(c) for c in (a.take, a.sequence or "", ";".join(a.labels), a.actor or "", a.reactor or "",
+                    sym, a.annotator, a.annotated_at, *a.texts, *([""] * (n_text - len(a.texts))))])  # fmt: skip
     return buf.getvalue()
 
 

@@ -40,9 +40,13 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from dualhuman_builder.export.features import FEATURE_DIM, mirror_features, mirror_text
-from dualhuman_builder.export.files import load_motion, read_manifest, read_npz
+from dualhuman_builder.export.files import check_seq_id, load_motion, read_manifest, read_npz
 from dualhuman_builder.export.shards import decode_sample, iter_shards
+from dualhuman_builder.fileio import confined_path, open_confined, read_confined
 
+#: Largest split list or ``text.json`` read (bytes); paths from the manifest are read confined to
+#: the export (:func:`~dualhuman_builder.fileio.read_confined`).
+MAX_TEXT_BYTES = 64 << 20
 #: Default per-process budget of cached motion features (both persons), MiB: a whole split of most
 #: exports fits, so shuffled access does not reload files (1,000 ten-second sequences at 30 fps take
 #: 614 MiB; ``docs/decisions/0024-export-format-and-loaders.md``).
@@ -182,12 +186,14 @@ class MotionWindows(Dataset):
                 ids = sorted(seqs)
             elif split in self.manifest.get("split", {}).get("files", {}):
                 rel = self.manifest["split"]["files"][split]
-                ids = [s for s in (self.folder / rel).read_text(encoding="utf-8").splitlines() if s.strip()]
+                data = read_confined(self.folder, rel, MAX_TEXT_BYTES, f"split file {rel!r:.200} of {self.folder}")
+                ids = [s for s in data.decode("utf-8").splitlines() if s.strip()]
             else:
                 raise ValueError(f"unknown split {split!r}; choose train, test or all")
             for sid in ids:
                 if sid not in seqs:
                     raise ValueError(f"split {split!r} names {sid!r}, which the manifest does not list")
+                check_seq_id(sid)  # it names a folder
                 self._add(index, sid, int(seqs[sid]["frames"]) - 1)
             self._keep_all = False
             stats_folder = self.folder
@@ -212,10 +218,14 @@ class MotionWindows(Dataset):
             if not self._keep_all:
                 self._cache.move_to_end(sid)
             return self._cache[sid]
-        base = self.folder / "sequences" / sid
-        fa, fb = load_motion(base / "motion.npz", keys=("a.features", "b.features")).values()
-        text_file = base / "text.json"
-        texts = json.loads(text_file.read_bytes().decode("utf-8")).get("texts", []) if text_file.is_file() else []
+        base = f"sequences/{sid}"
+        with open_confined(self.folder, f"{base}/motion.npz", f"{base}/motion.npz of {self.folder}") as f:
+            fa, fb = load_motion(f, keys=("a.features", "b.features")).values()
+        text_file = confined_path(self.folder, f"{base}/text.json", f"{base}/text.json of {self.folder}")
+        texts = []
+        if text_file.is_file():
+            doc = json.loads(read_confined(self.folder, f"{base}/text.json", MAX_TEXT_BYTES).decode("utf-8"))
+            texts = doc.get("texts", []) if isinstance(doc, dict) else []
         entry = (fa, fb, [str(t) for t in texts])
         self._cache[sid] = entry
         self._cached_bytes += fa.nbytes + fb.nbytes
@@ -240,12 +250,13 @@ class MotionWindows(Dataset):
         from PIL import Image
 
         views = self.manifest["sequences"][sid].get("render_views", [])
-        base = self.folder / "sequences" / sid / "renders" / "views"
+        base = f"sequences/{sid}/renders/views"
         frames = range(start, start + self.window)
         images: dict[tuple[int, int], np.ndarray] = {}
         for v, view in enumerate(views):
             for k, f in enumerate(frames):
-                path = base / view / "rgb" / f"{f:05d}.png"
+                rel = f"{base}/{view}/rgb/{f:05d}.png"
+                path = confined_path(self.folder, rel, f"{rel!r:.200} (a view named by the manifest) of {self.folder}")
                 if path.is_file():
                     with Image.open(path) as im:
                         images[v, k] = np.asarray(im.convert("RGB"))

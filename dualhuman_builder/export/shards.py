@@ -24,8 +24,20 @@ import tarfile
 from pathlib import Path, PurePosixPath
 from typing import Any, Collection, Iterable, Iterator
 
-from dualhuman_builder.export.files import FORMAT_VERSION, SEQUENCE_JSON, json_bytes, read_manifest, read_npz
-from dualhuman_builder.fileio import atomic_open
+from dualhuman_builder.errors import FormatError
+from dualhuman_builder.export.files import (
+    FORMAT_VERSION,
+    SEQUENCE_JSON,
+    check_seq_id,
+    json_bytes,
+    read_manifest,
+    read_npz,
+)
+from dualhuman_builder.fileio import atomic_open, read_confined
+
+#: Largest split list or statistics file read from an export (bytes); paths from its manifest are
+#: read confined to the export (:func:`~dualhuman_builder.fileio.read_confined`).
+MAX_LIST_BYTES = 64 << 20
 
 DEFAULT_MAX_BYTES = 256 * 2**20
 #: Sequence files carried in a sample, as (path in the sequence folder, member extension).
@@ -69,10 +81,16 @@ def _shard_bytes(samples: list[tuple[str, list[tuple[str, bytes]]]]) -> bytes:
 def _split_ids(out: Path, manifest: dict, split: str) -> list[str]:
     if split == "all":
         return sorted(manifest["sequences"])
-    rel = manifest.get("split", {}).get("files", {}).get(split)
+    table = manifest.get("split", {}).get("files", {}) if isinstance(manifest.get("split"), dict) else {}
+    rel = table.get(split) if isinstance(table, dict) else None
     if rel is None:
-        raise ValueError(f"unknown split {split!r}; this export has {sorted(manifest.get('split', {}).get('files', {}))} or 'all'")
-    return [s for s in (out / rel).read_text(encoding="utf-8").splitlines() if s.strip()]
+        names = sorted(table) if isinstance(table, dict) else []
+        raise ValueError(f"unknown split {split!r}; this export has {names} or 'all'")
+    data = read_confined(out, rel, MAX_LIST_BYTES, f"split file {rel!r:.200} of {out}")
+    try:
+        return [s for s in data.decode("utf-8").splitlines() if s.strip()]
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{out / rel}: not UTF-8 ({e})") from None
 
 
 def write_shards(out_dir: str | Path, shard_dir: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
@@ -102,12 +120,16 @@ def write_shards(out_dir: str | Path, shard_dir: str | Path, max_bytes: int = DE
     for sid in ids:
         if sid not in manifest["sequences"]:
             raise ValueError(f"split {split!r} names {sid!r}, which the manifest does not list")
+        check_seq_id(sid)
         members = []
         for rel, ext in SAMPLE_FILES:
             key = f"sequences/{sid}/{rel}"
             if key not in files:
                 continue
-            data = (out / key).read_bytes()
+            try:
+                data = read_confined(out, key, int(files[key].get("bytes", 0)), f"{key} of {out}")
+            except FormatError as e:
+                raise FormatError(e.message, fix=f"run `dualhuman export verify {out}`") from None
             if hashlib.sha256(data).hexdigest() != files[key]["sha256"]:
                 raise ValueError(f"{out / key}: sha256 differs from the manifest; run `dualhuman export verify {out}`")
             members.append((ext, data))
@@ -133,8 +155,9 @@ def write_shards(out_dir: str | Path, shard_dir: str | Path, max_bytes: int = DE
             old.unlink()
     for stat in ("mean", "std"):
         rel = manifest.get("stats", {}).get(stat, f"stats/{stat}.npy")
+        data = read_confined(out, rel, MAX_LIST_BYTES, f"statistics file {rel!r:.200} of {out}")
         with atomic_open(shard_dir / "stats" / f"{stat}.npy", "wb") as f:
-            f.write((out / rel).read_bytes())
+            f.write(data)
     doc = {"format": "dualhuman-shards", "format_version": FORMAT_VERSION, "split": split,
            "pattern": f"{split}-{{000000..{len(paths) - 1:06d}}}.tar", "samples": len(ids), "fps": manifest["fps"],
            "feature_dim": manifest["feature_dim"], "toolkit_version": manifest["toolkit_version"],

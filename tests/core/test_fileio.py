@@ -1,4 +1,5 @@
 import io
+import os
 import zipfile
 
 import numpy as np
@@ -98,3 +99,33 @@ def test_corrupt_deflate_streams_are_format_errors_not_zlib_errors(tmp_path):
         with pytest.raises(FormatError, match="truncated or corrupt|no __meta__"):
             load_npz(tmp_path / "c.npz", "Thing", 1)
     assert "zlib" in kinds  # the case this test is about did occur
+
+
+# ------------------------------------------------------------------------------------ confined paths
+def test_paths_read_from_a_file_stay_inside_its_folder(tmp_path):
+    from dualhuman_builder.fileio import confined_path, open_confined, read_confined
+
+    root = tmp_path / "export"
+    (root / "sub").mkdir(parents=True)
+    (root / "sub" / "a.txt").write_text("inside")
+    (tmp_path / "secret.txt").write_text("outside")
+    (root / "link_in").symlink_to(root / "sub" / "a.txt")
+    (root / "link_out").symlink_to(tmp_path / "secret.txt")
+    (root / "dir_out").symlink_to(tmp_path)
+    (root / "loop").symlink_to(root / "loop")
+    os.mkfifo(root / "fifo")
+    assert confined_path(root, "sub/a.txt") == (root / "sub" / "a.txt").resolve()
+    assert read_confined(root, "./sub//a.txt", 100) == b"inside" == read_confined(root, "link_in", 6)
+    cases = [("/etc/passwd", "not a relative path inside the folder"), ("../secret.txt", "not a relative path"),
+             ("sub/../../secret.txt", "not a relative path"), ("sub\\a.txt", "backslash"), ("", "not a relative"),
+             (".", "not a relative"), ("a\x00b", "not a relative"), (["sub"], r"must be a relative path \(text\)"),
+             ("link_out", "leads out of the folder"), ("dir_out/secret.txt", "leads out of the folder"),
+             ("loop", "loop"), ("fifo", "not a regular file"), ("sub", "not a regular file"), ("missing.txt", "missing")]
+    for rel, message in cases:
+        with pytest.raises(FormatError, match=message) as e:
+            read_confined(root, rel, 100, what=f"split file {rel!r}")
+        assert e.value.message.startswith(f"split file {rel!r}: ")
+    with pytest.raises(FormatError, match=r"'sub/a.txt': 6 bytes, more than the 5 allowed"):
+        read_confined(root, "sub/a.txt", 5)
+    with open_confined(root, "sub/a.txt") as f:
+        assert f.read() == b"inside"

@@ -3,30 +3,47 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import sqlite3
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given
+from hypothesis import strategies as st
 
 from dualhuman_builder.cli import main
-from dualhuman_builder.errors import WorkspaceError
-from dualhuman_builder.export.annotate import export_annotations, import_annotations, take_labels
+from dualhuman_builder.errors import DualhumanError, WorkspaceError
+from dualhuman_builder.export.annotate import (
+    FIELDS,
+    FORMULA_START,
+    escape_cell,
+    export_annotations,
+    import_annotations,
+    take_labels,
+    unescape_cell,
+)
 from dualhuman_builder.labels import Annotation, Vocabulary, check_annotation, load_vocabulary
 from dualhuman_builder.workspace import CATALOG_VERSION, Workspace
 
 HEADER = "take,sequence,labels,actor,reactor,symmetric,annotator,annotated_at,text_1,text_2\n"
 
 
-@pytest.fixture
-def ws(tmp_path):
-    w = Workspace.init(tmp_path / "ws")
+def _workspace(path, labels=("hug",)):
+    w = Workspace.init(path)
     for name in ("alice", "bob", "carol"):
         w.add_actor(name, 1.7)
     w.add_take("T1", actors=["alice", "bob"])
     w.add_take("T2", actors=["bob", "carol"])
-    w.add_sequence("T1", "S1", 0, 40, labels=("hug",))
+    w.add_sequence("T1", "S1", 0, 40, labels=labels)
+    return w
+
+
+@pytest.fixture
+def ws(tmp_path):
+    w = _workspace(tmp_path / "ws")
     yield w
     w.close()
 
@@ -90,7 +107,7 @@ def test_a_version_1_catalog_is_migrated_when_opened_for_writing(tmp_path):
         assert w.annotate([Annotation("T", None, "ann", ("hug",), annotated_at="2026-01-01T00:00:00Z")]) == 1
         assert w.annotations()[0].labels == ("hug",)
         version = w.conn.execute("SELECT value FROM meta WHERE key = 'format_version'").fetchone()[0]
-    assert int(version) == CATALOG_VERSION == 2
+    assert int(version) == CATALOG_VERSION >= 2  # migrated to the current version, annotations included
 
 
 # ------------------------------------------------------------------------------ import / export
@@ -130,6 +147,12 @@ def test_csv_import_stores_checked_records_and_reimport_replaces(ws, tmp_path):
         ("T1,,push,,,maybe,ann,,,", r"line 2: symmetric must be true or false, got 'maybe'"),
         ("T1,,push,,,,,,,", r"line 2: no annotator"),
         ("T1,,push,,,,ann,,,,extra", r"line 2: 1 more cells than header columns"),
+        ("T1,,push,,,,ann,yesterday,,", r"line 2: annotated_at must be an ISO 8601 time .*got 'yesterday'"),
+        ("T1,,push,,,,ann,2026-13-01T10:00:00Z,,", r"line 2: annotated_at must be an ISO 8601 time"),
+        ("T1,,push,,,,ann\x1b[2J,,,", r"line 2: annotator holds the control character '\\x1b' \(U\+001B\) at position"),
+        ("T1,,push\x07,,,,ann,,,", r"line 2: labels holds the control character '\\x07'"),
+        ("T1,,push,,,,ann,,a\x00b,", r"line 2: text 1 holds the control character '\\x00'"),
+        ("T1,,push,,,,al\u202eice,,,", r"line 2: annotator holds the invisible or invalid character '\\u202e'"),
     ],
 )  # fmt: skip
 def test_an_invalid_row_imports_nothing_and_names_its_line(ws, tmp_path, row, message):
@@ -182,6 +205,100 @@ def test_export_then_import_round_trips_and_lists_blank_rows(ws, tmp_path, fmt):
     assert [a.__dict__ | {"source": None} for a in other.annotations()] == strip
     assert other.annotations()[0].texts == ("Bob pushes Alice", 'He says "sorry"; then leaves')
     other.close()
+
+
+# ------------------------------------------------------------------------------ odd and hostile files
+def test_a_cell_over_128_kib_is_one_invalid_row(ws, tmp_path):
+    f = _write(tmp_path / "big.csv", HEADER + "T1,,hug,,,,ann,,\"" + "x" * 200_000 + "\",\nT2,,high_five,,,,ann,,,\n")
+    with pytest.raises(WorkspaceError, match=r"nothing imported: line 2: text 1 is 200000 characters long, more than"):
+        import_annotations(ws, f)
+    res = import_annotations(ws, f, skip_invalid=True)
+    assert (res["imported"], [n for n, _ in res["invalid"]]) == (1, [2])
+    assert [a.take for a in ws.annotations()] == ["T2"]
+    assert csv.field_size_limit() == 131072  # the csv module's limit is left as it was
+
+
+def test_an_endless_file_is_refused_after_its_cap(ws, tmp_path):
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    with pytest.raises(WorkspaceError, match="more than 64 MiB"):
+        import_annotations(ws, tmp_path / "zero.csv")
+
+
+def test_deeply_nested_or_huge_json_lines_are_invalid_rows(ws, tmp_path):
+    lines = ['{"take": "T2", "labels": ["high_five"], "annotator": "a"}',
+             '{"take": ' + "[" * 100_000 + "]" * 100_000 + "}",
+             '{"take": "T1", "symmetric": ' + "1" * 5000 + ', "annotator": "a"}',
+             '{"take": "T1", "texts": [[[["x"]]]], "annotator": "a"}',
+             '{"take": "T1", "labels": "hug", "annotator": "a\\ud800"}']
+    f = _write(tmp_path / "deep.jsonl", "\n".join(lines) + "\n")
+    with pytest.raises(WorkspaceError, match=r"4 invalid row\(s\).*line 2: not JSON this reader takes \(nested too "
+                       r"deeply\).*line 3: not JSON this reader takes.*line 4: text 1 must be text, got a list.*"
+                       r"line 5: annotator holds the invisible or invalid character '\\ud800'"):  # fmt: skip
+        import_annotations(ws, f)
+    res = import_annotations(ws, f, skip_invalid=True)
+    assert res["imported"] == 1 and [n for n, _ in res["invalid"]] == [2, 3, 4, 5]
+
+
+def test_formula_cells_are_escaped_in_csv_and_restored_on_import(ws, tmp_path):
+    texts = ('=HYPERLINK("http://evil.example","click")', "+1 and more", "-2 degrees", "@SUM(A1:A2)",
+             "'=quoted already", "'tis plain", "a = b", "two\nlines")
+    ws.annotate([Annotation("T1", None, "=cmd|' /C calc'!A0", ("hug",), texts, annotated_at="2026-11-01T10:00:00Z")])
+    text, _ = export_annotations(ws, tmp_path / "out.csv", blank=False)
+    cells = [c for row in csv.reader(io.StringIO(text)) for c in row]
+    assert not [c for c in cells if c and c[0] in FORMULA_START]  # no spreadsheet reads a formula
+    assert {"'=HYPERLINK(\"http://evil.example\",\"click\")", "'+1 and more", "''=quoted already"} <= set(cells)
+    assert "'tis plain" in cells
+    assert "'=cmd|' /C calc'!A0" in cells
+    other = _workspace(tmp_path / "other", labels=())
+    import_annotations(other, tmp_path / "out.csv")
+    (back,) = other.annotations()
+    assert back.texts == texts and back.annotator == "=cmd|' /C calc'!A0"
+    other.close()
+
+
+@given(st.text(max_size=12))
+def test_escaping_a_cell_is_undone_exactly(text):
+    cell = escape_cell(text)
+    assert unescape_cell(cell) == text and not (cell and cell[0] in FORMULA_START)
+
+
+def test_cli_prints_the_file_s_text_as_text_not_markup(ws, tmp_path):
+    f = _write(tmp_path / "a.csv", HEADER + "T1,,[/x];[bold]hug,,,,ann,,,\nT2,,high_five,,,,ann,,,\n")
+    r = CliRunner().invoke(main, ["annotate", "import", str(ws.root), str(f), "--skip-invalid"])
+    assert r.exit_code == 0, r.output
+    assert "label '[/x]' is not in the interaction vocabulary" in r.output and "1 annotation(s) imported" in r.output
+
+
+_CELL = st.text(max_size=8) | st.sampled_from(["T1", "T2", "S1", "S9", "hug", "push;hug", "alice", "bob", "carol", "ann",
+                                                "true", "maybe", "", "2026-11-01T10:00:00Z", "noon", "=1+1", "'-x", '"',
+                                                "\n", "\x1b", "\u202e", "\ud800", "x" * 140_000])  # fmt: skip
+_JSON_VALUE = st.recursive(st.none() | st.booleans() | st.integers() | _CELL, lambda k: st.lists(k, max_size=3),
+                           max_leaves=5)  # fmt: skip
+
+
+@given(data=st.data(), skip=st.booleans())
+def test_any_annotation_file_gives_a_clear_error_or_counted_rows(ws, tmp_path, data, skip):
+    fmt = data.draw(st.sampled_from(["csv", "jsonl"]))
+    if fmt == "csv":
+        rows = data.draw(st.lists(st.lists(_CELL, max_size=11), max_size=4))
+        buf = io.StringIO()
+        csv.writer(buf).writerows(rows)
+        body = data.draw(st.sampled_from([HEADER, "take,labels\n", ""])) + buf.getvalue()
+    else:
+        keys = st.sampled_from([*FIELDS, "texts", "label"])
+        objs = data.draw(st.lists(st.dictionaries(keys, _JSON_VALUE, max_size=6) | _JSON_VALUE, max_size=4))
+        body = "".join(json.dumps(o) + "\n" for o in objs)
+        body += data.draw(st.sampled_from(["", "[" * 3000 + "]" * 3000 + "\n", '{"take": ' + "1" * 5000 + "}\n"]))
+    raw = body.encode("utf-8", "surrogatepass") + data.draw(st.sampled_from([b"", b"\xff\n", b"{[\n", b'"a,\n']))
+    f = tmp_path / f"in.{fmt}"
+    f.write_bytes(raw)
+    try:
+        res = import_annotations(ws, f, skip_invalid=skip)
+    except DualhumanError as e:
+        assert e.message
+        return
+    assert res["rows"] == res["imported"] + res["blank"] + len(res["invalid"])  # every row accounted for
+    assert skip or not res["invalid"]
 
 
 # ------------------------------------------------------------------------------ into the export
