@@ -58,6 +58,7 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("render_cuda", "benchmarks/bench_render.py --variant cuda_ad_rgb --views 8 --frames 16 --repeats 5",
      "on a machine with a CUDA GPU"),
     ("export", "benchmarks/bench_export.py", ""),
+    ("fuzz", "benchmarks/fuzz.py", "on an otherwise idle machine (100,000 inputs per target: about 15 to 20 minutes on 2 cores)"),
     ("probe_mcap_writer", "benchmarks/probes/probe_mcap_writer.py --repeats 9", ""),
     ("probe_skin_at", "benchmarks/probes/probe_skin_at.py", ""),
     ("probe_collision_band", "benchmarks/probes/probe_collision_band.py", ""),
