@@ -1,16 +1,33 @@
 """The body model: anny in the toolkit's Y-up world, its joint sets, the MVN mapping, regions.
 
 See :mod:`dualhuman_builder.body.model` for the pose parameterisation.
+
+The names below are imported on first use (PEP 562), so that a module needing only the MVN
+segment table (the capture decoders, their decoding process) does not load torch and anny.
 """
 
-from dualhuman_builder.body.joints import COCO17, JOINT22_BONES, JOINT22_NAMES, JOINT22_PARENTS, tpose
-from dualhuman_builder.body.mapping import MVN_SEGMENTS, load_segment_mapping, tpose_deviations
-from dualhuman_builder.body.model import BodyModel, BodyOutput, anny_cache_is_warm, get_body_model
-from dualhuman_builder.body.regions import BodyRegions, load_regions
-from dualhuman_builder.body.shape import shape_for_stature, stature
+from __future__ import annotations
 
-__all__ = [
-    "BodyModel", "BodyOutput", "BodyRegions", "COCO17", "JOINT22_BONES", "JOINT22_NAMES",
-    "JOINT22_PARENTS", "MVN_SEGMENTS", "anny_cache_is_warm", "get_body_model", "load_regions",
-    "load_segment_mapping", "shape_for_stature", "stature", "tpose", "tpose_deviations",
-]  # fmt: skip
+import importlib
+
+#: Public name -> the submodule that defines it.
+_WHERE = {
+    "COCO17": "joints", "JOINT22_BONES": "joints", "JOINT22_NAMES": "joints", "JOINT22_PARENTS": "joints",
+    "tpose": "joints", "MVN_SEGMENTS": "mapping", "load_segment_mapping": "mapping", "tpose_deviations": "mapping",
+    "BodyModel": "model", "BodyOutput": "model", "anny_cache_is_warm": "model", "get_body_model": "model",
+    "BodyRegions": "regions", "load_regions": "regions", "shape_for_stature": "shape", "stature": "shape",
+}  # fmt: skip
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WHERE))
