@@ -1069,7 +1069,8 @@ class TakeTarget(FileTarget):
             pass
 
     def _repair(self, path: Path) -> None:
-        from dualhuman_builder.capture.log.reader import check_take, repair_take
+        from dualhuman_builder.capture.log.reader import check_take
+        from dualhuman_builder.capture.log.repair import repair_take
         from dualhuman_builder.errors import FormatError
 
         self.out.unlink(missing_ok=True)

@@ -24,7 +24,10 @@ Trackers
 
 Inputs come from :func:`~dualhuman_builder.capture.log.reader.read_columns`: suits
 ``suits/mvn/<c>/SuitFrame`` with channel metadata ``actor``; trackers ``.../TrackerSample`` with
-``actor`` and ``segment`` (from the rig).
+``actor`` and ``segment`` (from the rig). A suit's 23 body segments are taken by name: segments
+beyond them (a prop added mid-take, finger segments) are set aside and a sample that lacks a body
+segment (a stray datagram with another segment count) is left out; the report's ``suit_segments``
+counts both per channel, with a warning.
 """
 
 from __future__ import annotations
@@ -165,16 +168,53 @@ def _suit_device_ns(cols: dict) -> np.ndarray:
     return tc
 
 
-def _streams(columns: dict) -> tuple[list[_Stream], list[_Stream]]:
-    """``(suits, trackers)`` of a take's columns: suits in MVN character order, trackers bound
-    to an actor's segment by the rig (others are left out)."""
+def _body_columns(key: str, cols: dict) -> tuple[dict, dict]:
+    """A suit channel's columns with only the body's 23 segments, in MVN order, picked by name;
+    samples that lack one of them are left out. Returns ``(columns, counts)``: ``counts`` says how
+    many samples were left out and which other segments (props, fingers, strays) were set aside,
+    on how many samples (empty when every sample carries exactly the body)."""
+    names = tuple(cols["segment_names"])
+    lacking = [g for g in MVN_SEGMENTS if g not in names]
+    if lacking:
+        raise SyncError(f"{key}: no sample carries the body segments {lacking}",
+                        fix="record the suit's full body (23 segments)")  # fmt: skip
+    idx = np.array([names.index(g) for g in MVN_SEGMENTS])
+    n = len(np.asarray(cols["host_time_ns"]))
+    present = cols.get("segment_names__present")
+    keep = np.ones(n, dtype=bool) if present is None else np.asarray(present)[:, idx].all(axis=1)
+    out = {k: (v[keep] if isinstance(v, np.ndarray) and v.ndim >= 1 and len(v) == n else v) for k, v in cols.items()
+           if not k.startswith("segment_names__")}  # fmt: skip
+    out["orientations"] = np.asarray(cols["orientations"])[keep][:, idx]
+    out["positions"] = np.asarray(cols["positions"])[keep][:, idx]
+    out["segment_names"] = tuple(MVN_SEGMENTS)
+    counts: dict = {}
+    extra = [g for g in names if g not in MVN_SEGMENTS]
+    if extra:
+        cols_extra = [names.index(g) for g in extra]
+        others = np.asarray(present)[keep][:, cols_extra].any(axis=1) if present is not None else keep[keep]
+        counts["segments_set_aside"] = extra
+        counts["samples_with_them"] = int(others.sum())
+    if not keep.all():
+        counts["samples_left_out"] = int((~keep).sum())
+    return out, counts
+
+
+def _streams(columns: dict, notes: dict | None = None) -> tuple[list[_Stream], list[_Stream]]:
+    """``(suits, trackers)`` of a take's columns: suits in MVN character order (their body
+    segments only, :func:`_body_columns`; what was set aside goes to ``notes`` by channel),
+    trackers bound to an actor's segment by the rig (others are left out)."""
     suits, trackers = [], []
     for key, ch in columns.items():
         meta = ch.metadata or {}
         if key.endswith("/SuitFrame") and ch.count:
-            actor = meta.get("actor") or f"character{int(ch.columns['character'][0])}"
-            suits.append(_Stream(key, actor, meta.get("source", ""), _suit_device_ns(ch.columns),
-                                 np.asarray(ch.columns["host_time_ns"], dtype=np.float64), ch.columns))  # fmt: skip
+            cols, counts = _body_columns(key, ch.columns)
+            if counts and notes is not None:
+                notes[key] = counts
+            if not len(cols["host_time_ns"]):
+                continue
+            actor = meta.get("actor") or f"character{int(cols['character'][0])}"
+            suits.append(_Stream(key, actor, meta.get("source", ""), _suit_device_ns(cols),
+                                 np.asarray(cols["host_time_ns"], dtype=np.float64), cols))  # fmt: skip
         elif key.endswith("/TrackerSample") and ch.count and meta.get("actor") and meta.get("segment"):
             trackers.append(_Stream(key, meta["actor"], meta.get("source", ""),
                                     np.asarray(ch.columns["device_time_ns"], dtype=np.float64),
@@ -280,7 +320,8 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
     say = progress or (lambda _m: None)
     if not fps > 0:
         raise SyncError(f"fps must be positive, got {fps}")
-    suits, trackers = _streams(columns)
+    layout_notes: dict = {}
+    suits, trackers = _streams(columns, layout_notes)
     if not suits:
         raise SyncError("the take has no suit stream (suits/mvn/<character>/SuitFrame)",
                         fix="record the suits, or bind actors to MVN characters with --actor NAME=SOURCE#CHARACTER")  # fmt: skip
@@ -296,6 +337,16 @@ def synchronise(columns: dict, fps: float = 30.0, actors: list[str] | None = Non
 
     # ---- clocks
     report: dict[str, Any] = {"reference": by_actor[names[0]].key, "clocks": {}, "lags": {}, "mounts": {}}
+    if layout_notes:
+        report["suit_segments"] = layout_notes
+        for key, c in layout_notes.items():
+            if c.get("segments_set_aside"):
+                report.setdefault("warnings", []).append(
+                    f"{key}: {c['samples_with_them']} samples carry segments beyond the body's 23 "
+                    f"({', '.join(c['segments_set_aside'])}: props?); the body segments are used, those set aside")
+            if c.get("samples_left_out"):
+                report.setdefault("warnings", []).append(
+                    f"{key}: {c['samples_left_out']} samples lack body segments (another segment count); left out")
     fits = {}
     for s in [*suits, *trackers]:
         try:

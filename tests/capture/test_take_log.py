@@ -20,8 +20,8 @@ from mcap.reader import make_reader
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
 from dualhuman_builder.capture.log import schemas
-from dualhuman_builder.capture.log.reader import (TakeReader, check_take, dump_jsonl, read_columns, repair_take,
-                                                  scan_take)  # fmt: skip
+from dualhuman_builder.capture.log.reader import TakeReader, check_take, dump_jsonl, read_columns, scan_take
+from dualhuman_builder.capture.log.repair import repair_take
 from dualhuman_builder.capture.log.writer import TakeWriteError, TakeWriter
 from dualhuman_builder.capture.samples import ImuSample, SuitFrame, TrackerSample
 from dualhuman_builder.capture.replay import same_sample

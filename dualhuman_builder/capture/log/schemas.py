@@ -20,7 +20,10 @@ Field kinds and their ROS 1 types:
 
 An array's element type comes from the first sample of a channel (:func:`layout_for`); later
 samples are cast to it. Values round-trip exactly (float64, int64), so a sample read back from a
-take equals the one that was recorded.
+take equals the one that was recorded. A channel's messages are read back as columns by
+:func:`decode_channel`, which merges samples whose layout changes (an MVN prop added mid-take) by
+name. Every length and count in a message is checked against its bytes before use: a message that
+lies raises :class:`FormatError`.
 """
 
 from __future__ import annotations
@@ -252,7 +255,11 @@ def parse_definition(schema_name: str, definition: str, classes: dict[str, type]
                           fix="read the take with the toolkit version that wrote it")  # fmt: skip
     lines = [ln.split() for ln in definition.splitlines() if ln.strip()]
     fields = []
-    for typ, name in lines:
+    for words in lines:
+        if len(words) != 2:
+            raise FormatError(f"schema {schema_name!r}: a line of {len(words)} words ({' '.join(words)[:60]!r}), "
+                              "not TYPE NAME")  # fmt: skip
+        typ, name = words
         if name.endswith("__shape"):
             continue
         if typ.endswith("[]"):
@@ -268,6 +275,14 @@ def parse_definition(schema_name: str, definition: str, classes: dict[str, type]
             if kind is None:
                 raise FormatError(f"schema {schema_name!r}: unsupported field type {typ!r}")
             fields.append(FieldSpec(name, kind, typ))
+    names = [f.name for f in fields]
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = [n for n in names if n not in known]
+    required = [n for n, f in known.items() if n not in names and f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING]  # fmt: skip
+    if unknown or required or len(set(names)) != len(names):
+        raise FormatError(f"schema {schema_name!r} does not match {cls.__name__}: fields {names}",
+                          fix="read the take with the toolkit version that wrote it")  # fmt: skip
     return Layout(cls, schema_name, tuple(fields))
 
 
@@ -340,13 +355,16 @@ def decode(layout: Layout, data: bytes | memoryview):
                 else:
                     arr = flat.reshape(shape).astype(np.float64)
                 values[f.name] = arr
-    except struct.error:
+    except (struct.error, IndexError):
         raise FormatError(f"{layout.schema_name} message is truncated ({n} bytes)") from None
     except UnicodeDecodeError as e:
         raise FormatError(f"{layout.schema_name}: a string is not UTF-8 ({e})") from None
     if pos != n:
         raise FormatError(f"{layout.schema_name} message has {n - pos} bytes after its last field")
-    return layout.cls(**values)
+    try:
+        return layout.cls(**values)
+    except (TypeError, ValueError) as e:
+        raise FormatError(f"{layout.schema_name}: the fields do not make a {layout.cls.__name__} ({e})") from None
 
 
 def sample_classes() -> dict[str, type]:
@@ -426,8 +444,14 @@ def decode_columns(layout: Layout, datas: list) -> dict[str, Any] | None:
                 out[f.name] = getattr(decode(layout, raw[0].tobytes()), f.name)
             elif f.kind == "str":  # same length, different text (e.g. time codes): an array of str
                 width = col.dtype.itemsize
-                text = np.ascontiguousarray(col).view(np.uint8).reshape(-1, width)[:, 4:]
-                out[f.name] = np.char.decode(np.ascontiguousarray(text).view(f"S{width - 4}").ravel(), "utf-8")
+                as_bytes = np.ascontiguousarray(col).view(np.uint8).reshape(-1, width)
+                if not (as_bytes[:, :4] == as_bytes[0, :4]).all():
+                    return None
+                text = np.ascontiguousarray(as_bytes[:, 4:]).view(f"S{width - 4}").ravel()
+                try:
+                    out[f.name] = np.char.decode(text, "utf-8")
+                except UnicodeDecodeError:
+                    return None
             else:
                 return None
         elif f.kind == "array":
@@ -442,3 +466,287 @@ def decode_columns(layout: Layout, datas: list) -> dict[str, Any] | None:
         else:
             out[f.name] = np.ascontiguousarray(rows[f.name])
     return out
+
+
+# ---------------------------------------------------------------------- channels whose layout changes
+@dataclass
+class ChannelData:
+    """The decoded samples of one channel as columns (see :func:`decode_channel`): ``count``
+    samples; ``odd`` of them laid out otherwise than the channel's most common layout (another
+    segment count, other names); ``skipped`` messages that do not decode, left out."""
+
+    columns: dict[str, Any]
+    count: int
+    odd: int = 0
+    skipped: int = 0
+
+
+_FILL = {"float64": np.nan, "int64": 0, "bool": False}
+
+
+def _rows(parts: list):
+    """Each message of ``parts`` (2-D uint8 blocks of equal-length messages or single messages)."""
+    for p in parts:
+        if getattr(p, "ndim", 1) == 2:
+            yield from (p[i].tobytes() for i in range(len(p)))
+        else:
+            yield p
+
+
+def _stack(layout: Layout, samples: list) -> dict[str, Any]:
+    """Columns of ``samples`` that share one layout (array shapes and string lists)."""
+    cols: dict[str, Any] = {}
+    for f in layout.fields:
+        vals = [getattr(s, f.name) for s in samples]
+        if f.kind == "array":
+            cols[f.name] = np.stack(vals)
+        elif f.kind == "strs":
+            cols[f.name] = vals[0]
+        elif f.kind == "str":
+            cols[f.name] = vals[0] if all(v == vals[0] for v in vals) else np.asarray(vals)
+        else:
+            cols[f.name] = np.asarray(vals, dtype={"int": np.int64, "float": np.float64, "bool": bool}[f.kind])
+    return cols
+
+
+def _sample_signature(layout: Layout, s) -> tuple:
+    return tuple(np.shape(getattr(s, f.name)) if f.kind == "array" else getattr(s, f.name)
+                 for f in layout.fields if f.kind in ("array", "strs"))  # fmt: skip
+
+
+def _cols_signature(layout: Layout, cols: dict) -> tuple:
+    return tuple(np.shape(cols[f.name])[1:] if f.kind == "array" else cols[f.name]
+                 for f in layout.fields if f.kind in ("array", "strs"))  # fmt: skip
+
+
+def _name_keys(names: tuple) -> list[tuple[str, int]]:
+    """``(name, occurrence)`` per entry, so that a name listed twice keeps two places."""
+    seen: dict[str, int] = {}
+    out = []
+    for n in names:
+        out.append((n, seen.get(n, 0)))
+        seen[n] = seen.get(n, 0) + 1
+    return out
+
+
+def decode_channel(layout: Layout, datas: list) -> ChannelData:
+    """Every message of one channel as columns, whatever the layout of each.
+
+    Messages of one layout (the usual case) come back as :func:`decode_columns` gives them:
+    ``(N, ...)`` arrays, strings shared by every sample as one value. When the layout changes
+    within the channel (an MVN prop added mid-take: 23 segments, then 24; one stray datagram with
+    another segment count), the samples are merged so that no value moves to another name:
+
+    * an array whose first axis is indexed by the string list before it (``segment_names`` for
+      ``orientations`` and ``positions``) is aligned **by name**: the list becomes the union of
+      every sample's names, the channel's most common list first (so a suit's 23 body segments keep
+      their places and a prop's segments follow), and ``NAME__present (N, U)`` says which entries
+      each sample carried; absent entries are NaN (float), 0 (int) or False (bool);
+    * another array whose shape changes is padded to the widest shape the same way, with
+      ``FIELD__shape (N, ndim)`` the shape of each sample (-1 for a sample of another rank, whose
+      values are all absent);
+    * a string list that changes and indexes no array becomes an object array of tuples ``(N,)``.
+
+    Messages that do not decode (a damaged or forged message) are counted in ``skipped`` and left
+    out, and so are samples whose layout would make the merged columns more than
+    :data:`MERGE_GROWTH` times the channel's bytes (every sample naming other segments); ``odd``
+    counts the samples laid out otherwise than the most common layout."""
+    groups: dict[int, tuple[list[int], list[int], list]] = {}
+    total = 0
+    for d in datas:
+        n, width = (d.shape[0], d.shape[1]) if getattr(d, "ndim", 1) == 2 else (1, len(d))
+        starts, counts, parts = groups.setdefault(width, ([], [], []))
+        starts.append(total)
+        counts.append(n)
+        parts.append(d)
+        total += n
+    subs: list[tuple[np.ndarray, dict]] = []
+    skipped = 0
+    for starts, counts, parts in groups.values():
+        if len(groups) == 1:
+            positions = np.arange(total)
+        else:
+            c = np.asarray(counts)
+            positions = np.repeat(np.asarray(starts) - np.cumsum(c) + c, c) + np.arange(int(c.sum()))
+        cols = None
+        try:
+            decode(layout, next(_rows(parts[:1])))  # the first message's structure, checked before the fast path
+            cols = decode_columns(layout, parts)
+        except FormatError:
+            cols = None
+        if cols is not None:
+            subs.append((positions, cols))
+            continue
+        by_sig: dict[tuple, tuple[list[int], list]] = {}
+        for p, data in zip(positions.tolist(), _rows(parts)):
+            try:
+                s = decode(layout, data)
+            except FormatError:
+                skipped += 1
+                continue
+            ps, ss = by_sig.setdefault(_sample_signature(layout, s), ([], []))
+            ps.append(p)
+            ss.append(s)
+        subs += [(np.asarray(ps, dtype=np.int64), _stack(layout, ss)) for ps, ss in by_sig.values()]
+    if len(subs) > 1:
+        nbytes = sum(d.size if getattr(d, "ndim", 1) == 2 else len(d) for d in datas)
+        subs, dropped = _admit(layout, subs, MERGE_GROWTH * nbytes + (16 << 20))
+        skipped += dropped
+    return _merge(layout, subs, skipped)
+
+
+#: How many times the bytes of its messages the merged columns of a channel whose layout changes may
+#: take (padding and aligning by name): a channel whose every sample names other segments would
+#: otherwise grow with the square of its length.
+MERGE_GROWTH = 4
+
+
+def _admit(layout: Layout, subs: list[tuple[np.ndarray, dict]], limit: int) -> tuple[list, int]:
+    """The groups of samples to merge, the most common layout's first, then in order of appearance,
+    each admitted while the merged columns stay under ``limit`` bytes; returns them and the number of
+    samples left out."""
+    sizes: dict[tuple, int] = {}
+    for p, c in subs:
+        sig = _cols_signature(layout, c)
+        sizes[sig] = sizes.get(sig, 0) + len(p)
+    main = max(sizes, key=lambda k: sizes[k])
+    order = sorted(range(len(subs)), key=lambda i: (_cols_signature(layout, subs[i][1]) != main, int(subs[i][0].min())))
+    names: dict[str, set] = {f.name: set() for f in layout.fields if f.kind == "strs"}
+    widest: dict[str, list[int]] = {}
+    before = {}
+    last = None
+    for f in layout.fields:
+        before[f.name] = last
+        if f.kind == "strs":
+            last = f.name
+    kept, rows, dropped = [], 0, 0
+    for i in order:
+        p, c = subs[i]
+        new = {k: set(_name_keys(c[k])) - v for k, v in names.items()}
+        union = {k: len(v) + len(new[k]) for k, v in names.items()}
+        trial_widest = {}
+        per_row = sum(union.values())
+        for f in layout.fields:
+            if f.kind != "array":
+                continue
+            shape = list(c[f.name].shape[1:])
+            w = widest.get(f.name, shape)
+            w = [max(a, b) for a, b in zip(w, shape)] + (w[len(shape):] if len(w) > len(shape) else shape[len(w):])
+            trial_widest[f.name] = w
+            rest = int(np.prod(w[1:], dtype=np.int64)) if len(w) > 1 else 1
+            u = union[before[f.name]] if before[f.name] else 0
+            per_row += 8 * max(int(np.prod(w, dtype=np.int64)), u * rest)
+        if kept and (rows + len(p)) * per_row > limit:
+            dropped += len(p)
+            continue
+        kept.append(subs[i])
+        rows += len(p)
+        for k, v in new.items():
+            names[k] |= v
+        widest = trial_widest
+    return kept, dropped
+
+
+def _merge(layout: Layout, subs: list[tuple[np.ndarray, dict]], skipped: int) -> ChannelData:
+    """One set of columns from groups of samples that each share a layout (see :func:`decode_channel`)."""
+    if not subs:
+        return ChannelData({}, 0, 0, skipped)
+    order = np.sort(np.concatenate([p for p, _ in subs]))
+    N = len(order)
+    if len(subs) == 1:
+        return ChannelData(subs[0][1], N, 0, skipped)
+    ranks = [np.searchsorted(order, p) for p, _ in subs]
+    sigs = [_cols_signature(layout, c) for _, c in subs]
+    weight: dict[tuple, int] = {}
+    first: dict[tuple, int] = {}
+    for sig, r in zip(sigs, ranks):
+        weight[sig] = weight.get(sig, 0) + len(r)
+        first[sig] = min(first.get(sig, N), int(r.min()))
+    main_sig = max(weight, key=lambda k: (weight[k], -first[k]))
+    # the most common layout first, then the others in order of appearance
+    seq = sorted(range(len(subs)), key=lambda i: (sigs[i] != main_sig, int(ranks[i].min())))
+    out: dict[str, Any] = {}
+    names_before: dict[str, FieldSpec | None] = {}
+    last_strs = None
+    for f in layout.fields:
+        names_before[f.name] = last_strs
+        if f.kind == "strs":
+            last_strs = f
+    aligned: dict[str, tuple] = {}  # strs field -> (union names, {sub: column indices})
+    for f in layout.fields:
+        if f.kind != "array":
+            continue
+        nf = names_before[f.name]
+        if nf is None or all(subs[i][1][nf.name] == subs[seq[0]][1][nf.name] for i in seq):
+            continue
+        if not all(subs[i][1][f.name].ndim >= 2 and subs[i][1][f.name].shape[1] == len(subs[i][1][nf.name])
+                   for i in seq):  # fmt: skip
+            continue
+        if nf.name not in aligned:
+            index: dict[tuple[str, int], int] = {}
+            where = {}
+            for i in seq:
+                keys = _name_keys(subs[i][1][nf.name])
+                for k in keys:
+                    index.setdefault(k, len(index))
+                where[i] = np.asarray([index[k] for k in keys], dtype=np.int64)
+            aligned[nf.name] = (tuple(k[0] for k in index), where)
+        aligned.setdefault(f.name, aligned[nf.name])
+    for f in layout.fields:
+        cols = [subs[i][1][f.name] for i in range(len(subs))]
+        if f.kind in ("int", "float", "bool"):
+            col = np.empty(N, dtype=cols[seq[0]].dtype)
+            for r, c in zip(ranks, cols):
+                col[r] = c
+            out[f.name] = col
+        elif f.kind == "str":
+            if all(isinstance(c, str) for c in cols) and len(set(cols)) == 1:
+                out[f.name] = cols[0]
+            else:
+                col = np.empty(N, dtype=object)
+                for r, c in zip(ranks, cols):
+                    col[r] = c
+                out[f.name] = np.asarray(col.tolist(), dtype=str)
+        elif f.kind == "strs":
+            if f.name in aligned:
+                union, where = aligned[f.name]
+                present = np.zeros((N, len(union)), dtype=bool)
+                for i, r in enumerate(ranks):
+                    present[r[:, None], where[i][None, :]] = True
+                out[f.name] = union
+                out[f.name + "__present"] = present
+            elif len(set(cols)) == 1:
+                out[f.name] = cols[0]
+            else:
+                col = np.empty(N, dtype=object)
+                for r, c in zip(ranks, cols):
+                    for k in r.tolist():
+                        col[k] = c
+                out[f.name] = col
+        else:
+            main = cols[seq[0]]
+            fill = _FILL[f.ros_type]
+            if f.name in aligned:
+                union, where = aligned[f.name]
+                col = np.full((N, len(union), *main.shape[2:]), fill, dtype=main.dtype)
+                for i, (r, c) in enumerate(zip(ranks, cols)):
+                    if c.shape[2:] == main.shape[2:]:
+                        col[r[:, None], where[i][None, :]] = c
+                out[f.name] = col
+            elif len({c.shape[1:] for c in cols}) == 1:
+                col = np.empty((N, *main.shape[1:]), dtype=main.dtype)
+                for r, c in zip(ranks, cols):
+                    col[r] = c
+                out[f.name] = col
+            else:
+                same_rank = [c for c in cols if c.ndim == main.ndim]
+                widest = tuple(int(max(c.shape[k] for c in same_rank)) for k in range(1, main.ndim))
+                col = np.full((N, *widest), fill, dtype=main.dtype)
+                shapes = np.full((N, main.ndim - 1), -1, dtype=np.int64)
+                for r, c in zip(ranks, cols):
+                    if c.ndim == main.ndim:
+                        col[(r, *(slice(0, k) for k in c.shape[1:]))] = c
+                        shapes[r] = c.shape[1:]
+                out[f.name] = col
+                out[f.name + "__shape"] = shapes
+    return ChannelData(out, N, N - weight[main_sig], skipped)
