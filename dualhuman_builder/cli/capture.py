@@ -13,24 +13,55 @@ from dualhuman_builder.cli.app import console, err_console, main
 @main.command("import")
 @click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
 @click.argument("file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
-@click.option("--take", default=None, help="Take name (default: the file name without its suffix, made safe).")
-@click.option("--actor", default=None, help="A registered actor who wears the suit (`dualhuman actor add`).")
+@click.option("--take", default=None,
+              help="Take name (default: a .mcap file's recorded take name; else the file name without its suffix, made safe).")
+@click.option("--actor", default=None, help="MVNX/BVH: a registered actor who wears the suit (`dualhuman actor add`).")
 @click.option("--scale", type=float, default=None, help="BVH only: file units to metres (default: detected, m/cm/mm).")
 @click.option("--z-up", is_flag=True, help="BVH only: the file is Z-up (BVH is usually Y-up).")
 def import_(workspace: Path, file: Path, take: str | None, actor: str | None, scale: float | None, z_up: bool):
     """Import a recorded FILE into WORKSPACE as a take: an Xsens MVN XML export (.mvnx, read
-    streaming; calibration poses and every per-frame array kept) or a Biovision .bvh.
+    streaming; calibration poses and every per-frame array kept), a Biovision .bvh, or a take file
+    recorded by `dualhuman capture` (.mcap).
 
-    The file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read from it
-    (skeleton.npz, Y-up metres), and the take is registered with checksums.
+    MVNX and BVH: the file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read
+    from it (skeleton.npz, Y-up metres), and the take is registered with checksums.
 
-    Example:  dualhuman import WS take3.mvnx --actor alice
+    MCAP: the whole file is checked first (one cut off by a crash or a full disk is refused: run
+    `dualhuman log repair` on it first); a file already in WORKSPACE/takes/<take>/ (where
+    `capture -w` records) is registered where it is, another is copied there. This registers a
+    capture whose registration failed (say, the disk filled up as it ended): never record it again.
+
+    \b
+    Examples:
+      dualhuman import WS take3.mvnx --actor alice
+      dualhuman import WS WS/takes/T001/T001.mcap
     """
     from rich.markup import escape
 
     from dualhuman_builder.capture.importers import import_file
     from dualhuman_builder.workspace import Workspace
+    from dualhuman_builder.workspace.workspace import printable
 
+    if file.suffix.lower() == ".mcap":
+        from dualhuman_builder.capture.stage import register_take_file
+
+        if actor is not None or scale is not None or z_up:
+            raise click.UsageError("--actor, --scale and --z-up apply to .mvnx and .bvh files; a take file names its actors")
+        with Workspace.open(workspace) as ws:
+            with console.status(f"checking {file.name}..."):
+                t = register_take_file(ws, file, take=take, log=lambda m: console.print(escape(m), highlight=False))
+        counts = sum(t.sample_counts.values())
+        console.print(escape(f"registered {file.name} as take {printable(t.name)!r}: {counts:,} samples on "
+                             f"{len(t.sample_counts)} topics ({t.duration_s or 0:.1f} s), actors "
+                             f"{', '.join(map(printable, t.actors)) or 'none registered'}"), highlight=False, soft_wrap=True)  # fmt: skip
+        if t.meta.get("unregistered_actors"):
+            console.print(escape(f"  actors not in the workspace: {', '.join(map(printable, t.meta['unregistered_actors']))} "
+                                 f"(add them with `dualhuman actor add`)"), highlight=False, soft_wrap=True)  # fmt: skip
+        if t.meta.get("rig_name") and t.rig is None:
+            console.print(escape(f"  rig {printable(t.meta['rig_name'])!r} is not in the workspace (`dualhuman rig add`)"),
+                          highlight=False, soft_wrap=True)  # fmt: skip
+        console.print(escape(f"  file: {ws.root / t.files[0]['path']}"), highlight=False, soft_wrap=True)
+        return
     with Workspace.open(workspace) as ws:
         with console.status(f"reading {file.name}...") as spinner:
             r = import_file(ws, file, take=take, actor=actor, scale=scale, up="z" if z_up else "y",
@@ -73,7 +104,9 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
 
     A live table shows each source's rate, loss, errors and the age of its last sample, and
     which actors' suits and trackers are live. Stop with Ctrl-C or --duration. A device lost or a
-    full disk mid-take stops it cleanly: everything before is kept (exit status 1).
+    full disk mid-take stops it cleanly: everything before is kept (exit status 1). With -w, a take
+    that was recorded but could not be registered (a full disk) is kept too (exit status 1):
+    register it with `dualhuman import WS WS/takes/TAKE/TAKE.mcap` once the cause is fixed.
 
     \b
     Examples:
@@ -87,23 +120,44 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
     from rich.live import Live
 
     from dualhuman_builder.capture.recording import capture_take, default_take_path, plan_capture
-    from dualhuman_builder.cli.console import live_status_table
+    from dualhuman_builder.cli.console import live_status_table, print_error
+    from dualhuman_builder.errors import DualhumanError
 
     plan = plan_capture(rig_file, sources, actors)
     if out is None:
         if workspace is None:
             raise click.UsageError("say where the take goes: --workspace WS or --out TAKE.mcap")
         out = default_take_path(workspace, take)
+    if workspace is not None:
+        from dualhuman_builder.workspace import Workspace
+
+        with Workspace.open(workspace, readonly=True) as ws:
+            if take in ws.takes():
+                raise DualhumanError(f"take {take!r} is already in the workspace", path=workspace,
+                                     fix="record under another --take name")  # fmt: skip
+        if Path(out).exists():
+            raise DualhumanError(f"take {take!r} was recorded to {out} already, but is not in the workspace's catalog",
+                                 fix=f"register that recording with `dualhuman import {workspace} {out}`, or record "
+                                     "under another --take name")  # fmt: skip
     speed = math.inf if sim_speed == 0 else sim_speed
     log = None if quiet else (lambda m: err_console.print(f"[dim]{m}[/]", highlight=False))
-    if quiet or not console.is_terminal:
-        result = capture_take(plan, out, take=take, duration=duration, workspace=workspace, progress=log,
-                              sim_speed=speed, foxglove_hz=foxglove_hz)  # fmt: skip
-    else:
-        with Live(console=console, refresh_per_second=4, transient=False) as live:
+    try:
+        if quiet or not console.is_terminal:
             result = capture_take(plan, out, take=take, duration=duration, workspace=workspace, progress=log,
-                                  sim_speed=speed, foxglove_hz=foxglove_hz,
-                                  on_status=lambda st: live.update(live_status_table(st)))  # fmt: skip
+                                  sim_speed=speed, foxglove_hz=foxglove_hz)  # fmt: skip
+        else:
+            with Live(console=console, refresh_per_second=4, transient=False) as live:
+                result = capture_take(plan, out, take=take, duration=duration, workspace=workspace, progress=log,
+                                      sim_speed=speed, foxglove_hz=foxglove_hz,
+                                      on_status=lambda st: live.update(live_status_table(st)))  # fmt: skip
+    except DualhumanError as e:
+        if workspace is None or not isinstance(e.__cause__, DualhumanError) or not Path(out).is_file():
+            raise
+        # recorded, but not registered (the catalog could not be written): keep it and say how to register it
+        print_error(err_console, DualhumanError(e.message, fix=f"{e.fix + '; then ' if e.fix else ''}register the "
+                                                f"recording with `dualhuman import {workspace} {out}` (it is kept; do not "
+                                                "record it again)"))  # fmt: skip
+        sys.exit(1)
     counts = result.samples_per_topic
     console.print(f"take {result.take}: {result.duration_s:.1f} s, {sum(counts.values())} samples on {len(counts)} "
                   f"topics, {result.messages} messages -> {result.path}", highlight=False)  # fmt: skip
@@ -113,9 +167,6 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
     for ev in result.events[:20]:
         console.print(f"  [yellow]{ev['source']} {ev['entity']}: {ev['kind']}[/] {ev['message']}", highlight=False)
     if result.error:
-        from dualhuman_builder.cli.console import print_error
-        from dualhuman_builder.errors import DualhumanError
-
         print_error(err_console, DualhumanError(result.error, fix="the take is kept up to the failure; "
                                                 f"check it with `dualhuman log check {result.path}`"))
         sys.exit(1)
@@ -143,9 +194,11 @@ def log_check(take_file: Path, as_json: bool):
         state = "[green]complete[/]" if rep.ok else ("[yellow]incomplete[/]" if not rep.complete else "[red]damaged[/]")
         dur = "" if rep.first_ns is None else f", {(rep.last_ns - rep.first_ns) / 1e9:.1f} s"
         console.print(f"{take_file}: {state}, {rep.messages} messages in {rep.chunks} chunks{dur}, "
-                      f"{rep.size} bytes ({rep.lost_bytes} unreadable at the end)", highlight=False)  # fmt: skip
+                      f"{rep.size} bytes ({rep.lost_bytes} unreadable)", highlight=False)  # fmt: skip
         for topic, n in sorted(rep.per_topic.items()):
             console.print(f"  {topic}: {n}", highlight=False)
+        for topic, n in sorted(rep.lost_messages.items()):
+            console.print(f"  [yellow]lost:[/] {topic}: {n} messages in damaged chunks", highlight=False)
         for p in rep.problems:
             console.print(f"  [yellow]problem:[/] {p}", highlight=False)
     sys.exit(0 if rep.ok else 1)
@@ -156,16 +209,29 @@ def log_check(take_file: Path, as_json: bool):
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Write the repaired take here (default: in place; the original is kept as NAME.damaged.mcap).")
 def log_repair(take_file: Path, out: Path | None):
-    """Rebuild a take cut off by a crash, kill -9 or a full disk: everything readable, with a full index."""
-    from dualhuman_builder.capture.log.reader import repair_take
+    """Rebuild a take cut off by a crash, kill -9 or a full disk, or with damaged chunks: everything
+    readable, with a full index. Channels whose records were damaged are recovered from the take's
+    summary; samples the raw bytes hold that were never written (the decoding lagged, the disk
+    filled) are re-decoded and written. Says what was lost: bytes, and messages per topic."""
+    from dualhuman_builder.capture.log.repair import repair_take
 
     rep = repair_take(take_file, out)
-    console.print(f"repaired {rep.path}: {rep.messages} messages kept, {rep.lost_bytes} bytes lost at the end",
-                  highlight=False)  # fmt: skip
+    lost = sum(rep.lost_messages.values())
+    console.print(f"repaired {rep.path}: {rep.messages} messages kept, {sum(rep.redecoded.values())} samples "
+                  f"re-decoded from the raw bytes; lost: {rep.lost_bytes} bytes"
+                  + (f", {lost} messages" if lost else ""), highlight=False)  # fmt: skip
     if rep.original:
         console.print(f"  original kept as {rep.original}", highlight=False)
+    for topic, n in sorted(rep.lost_messages.items()):
+        console.print(f"  [yellow]lost:[/] {topic}: {n} messages", highlight=False)
+    for topic, n in sorted(rep.redecoded.items()):
+        console.print(f"  re-decoded: {topic}: {n} samples", highlight=False)
+    for line in rep.recovered:
+        console.print(f"  recovered: {line}", highlight=False)
     for p in rep.problems:
         console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+    for note in rep.notes:
+        console.print(f"  [yellow]note:[/] {note}", highlight=False)
 
 
 @log.command("dump")
@@ -182,9 +248,12 @@ def log_dump(take_file: Path, jsonl: bool, raw: bool, topics: tuple[str, ...]):
     from dualhuman_builder.capture.log.reader import dump_jsonl
 
     try:
-        dump_jsonl(take_file, sys.stdout, raw=raw, topics=topics)
+        dump_jsonl(take_file, sys.stdout, raw=raw, topics=topics, problems=(problems := []))
     except BrokenPipeError:
         sys.stderr.close()
+        return
+    for p in problems:
+        err_console.print(f"[yellow]problem:[/] {p}", highlight=False)
 
 
 @main.command()
@@ -219,7 +288,8 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
             console.print(f"  not sent (no --to for their kind): {', '.join(rep.skipped_sources)}", highlight=False)
         return
     t = time.perf_counter()
-    columns = read_columns(take_file)
+    problems: list[str] = []
+    columns = read_columns(take_file, problems)
     dt = time.perf_counter() - t
     n = sum(c.count for c in columns.values())
     firsts = [int(c.columns["host_time_ns"][0]) for c in columns.values() if c.count]
@@ -227,11 +297,40 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
     span = (max(lasts) - min(firsts)) / 1e9 if firsts else 0.0
     console.print(f"{n} samples over {span:.1f} s of host time, read in {dt:.2f} s", highlight=False)
     for topic, c in sorted(columns.items()):
-        console.print(f"  {topic}: {c.count} {c.sample_type}", highlight=False)
-    if verify:
-        chk = verify_replay(take_file)
-        if chk.identical:
-            console.print(f"[green]re-decoding the raw packets gives the recorded {chk.samples} samples bit for bit[/]")
-        else:
-            console.print(f"[red]{chk.mismatches} of {chk.samples} samples differ[/]; first: {chk.first_mismatch}")
-            sys.exit(1)
+        odd = ""
+        if c.odd:
+            present = c.columns.get("segment_names__present")
+            some = [] if present is None else [g for g, a in zip(c.columns["segment_names"], present.all(axis=0))
+                                               if not a]  # fmt: skip
+            odd = f" ({c.odd} laid out otherwise" + (f"; segments not in every sample: {', '.join(some)})"
+                                                      if some else ")")  # fmt: skip
+        console.print(f"  {topic}: {c.count} {c.sample_type}{odd}", highlight=False)
+    if not verify:
+        from dualhuman_builder.capture.log.reader import scan_take
+
+        if not scan_take(take_file).complete:
+            problems.append("the take has no index: the recording did not finish — `dualhuman log repair` "
+                            "rebuilds it and writes the samples its raw bytes hold that were never written")  # fmt: skip
+        for p in problems:
+            console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+        return
+    chk = verify_replay(take_file)
+    for p in chk.problems:
+        console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+    if chk.mismatches:
+        console.print(f"[red]{chk.mismatches} of {chk.samples} samples differ[/]; first: {chk.first_mismatch}",
+                      highlight=False)  # fmt: skip
+    if chk.missing:
+        console.print(f"[red]{chk.missing} samples decoded from the raw bytes are not in the take[/] (its decoded "
+                      f"samples lag the raw bytes): `dualhuman log repair {take_file}` writes them",
+                      highlight=False)  # fmt: skip
+    if chk.unreproduced:
+        console.print(f"[red]{chk.unreproduced} recorded samples are not given by re-decoding the raw bytes[/]",
+                      highlight=False)  # fmt: skip
+    if chk.verified:
+        console.print(f"[green]re-decoding the raw packets gives the recorded {chk.samples} samples bit for bit[/]")
+        return
+    if chk.identical:
+        what = "the take is damaged" if chk.problems else "the take holds no samples and its raw packets decode to none"
+        console.print(f"[red]not verified: {what}[/] ({chk.samples} samples re-decoded bit for bit)", highlight=False)
+    sys.exit(1)

@@ -13,12 +13,15 @@ from rich.text import Text
 #: Per run state: the glyph in the status grid (Unicode, and ASCII for other terminals) and its colour.
 STATE_GLYPHS = {
     "done": ("✓", "+", "green"),
+    "stale": ("~", "~", "yellow"),  # done once, but an input has changed since
     "failed": ("✗", "x", "red"),
     "running": ("▶", ">", "yellow"),
     "interrupted": ("!", "!", "magenta"),
+    "publishing": ("!", "!", "magenta"),  # killed while its new results replaced the old ones
     None: ("·", ".", "dim"),  # not run yet
 }
-STATE_WORDS = {"done": "done", "failed": "failed", "running": "running", "interrupted": "interrupted", None: "not run"}
+STATE_WORDS = {"done": "done", "stale": "stale", "failed": "failed", "running": "running", "interrupted": "interrupted",
+               "publishing": "publishing", None: "not run"}
 
 
 def is_utf8(console: Console) -> bool:
@@ -43,12 +46,29 @@ def _frames(r: dict[str, Any]) -> str:
     return "" if "frames" not in r else f"{r['frames'][0]}-{r['frames'][1]}"
 
 
+def printable_row(row: dict[str, Any]) -> dict[str, Any]:
+    """A status row with its names and messages safe to print: control and format characters
+    escaped (a take name cannot move the cursor or reorder the line)."""
+    from dualhuman_builder.workspace.workspace import printable
+
+    def lines(value):  # an error's lines stay lines; names are escaped whole
+        return None if value is None else "\n".join(printable(line) for line in str(value).split("\n"))
+
+    out = {**row, "take": printable(row["take"]), "sequence": None if row["sequence"] is None else printable(row["sequence"])}
+    out["stages"] = {printable(n): {**info, "error": lines(info.get("error"))} for n, info in row["stages"].items()}
+    return out
+
+
 def status_grid(rows: list[dict[str, Any]], stages, title: str, width: int = 80, unicode: bool = True) -> list[Text]:
     """The lines of ``dualhuman status``: one line per take and per sequence of it (indented),
     one column per stage (``stages``: objects with ``name`` and ``per``, in pipeline order) with a
     glyph for its state where the stage runs at that level, a legend, and the runs that need a look
     (failed, interrupted, running) with their errors. Plain text without styles where the console
-    has no colours; no line is cut: where the grid would pass ``width``, names go on their own line."""
+    has no colours; no line is cut: where the grid would pass ``width``, names go on their own line.
+    Names, errors and the title are printed escaped (:func:`printable_row`)."""
+    from dualhuman_builder.workspace.workspace import printable
+
+    rows, title = [printable_row(r) for r in rows], printable(title)
     names = [s.name for s in stages]
     per = {s.name: s.per for s in stages}
     names += sorted({n for r in rows for n in r["stages"]} - set(names))  # stages the registry no longer has
@@ -91,9 +111,14 @@ def status_grid(rows: list[dict[str, Any]], stages, title: str, width: int = 80,
         line.append_text(cells)
         line.rstrip()
         out.append(line)
-    legend = "  ".join(f"{g[pick]} {STATE_WORDS[k]}" for k, g in STATE_GLYPHS.items())
+    # "publishing" shares the interrupted mark and is left out of the legend (a run killed mid-publication)
+    legend = "  ".join(f"{g[pick]} {STATE_WORDS[k]}" for k, g in STATE_GLYPHS.items() if k != "publishing")
     out.append(Text(""))
-    out.append(Text(legend + "   (--long: hashes, times)", style="dim"))
+    hint = "(--long: hashes, times)"
+    if len(legend) + 3 + len(hint) <= width:
+        out.append(Text(legend + "   " + hint, style="dim"))
+    else:
+        out += [Text(legend, style="dim"), Text(hint, style="dim")]
     for r in rows:
         for n in names:
             info = r["stages"].get(n)
@@ -109,7 +134,11 @@ def status_grid(rows: list[dict[str, Any]], stages, title: str, width: int = 80,
 
 def status_long(rows: list[dict[str, Any]], stages, title: str) -> list[Text]:
     """``dualhuman status --long``: per take and per sequence, one line per stage run (state,
-    parameters hash, when it ended, how many artifacts), errors in full below a failed run."""
+    parameters hash, when it ended, how many artifacts), errors in full below a failed run; names,
+    errors and the title escaped as in :func:`status_grid`."""
+    from dualhuman_builder.workspace.workspace import printable
+
+    rows, title = [printable_row(r) for r in rows], printable(title)
     names = [s.name for s in stages]
     names += sorted({n for r in rows for n in r["stages"]} - set(names))
     out = [Text(title, style="bold")]

@@ -1,4 +1,7 @@
-"""`dualhuman sync`, `fuse`, `fit`, `contacts`, `render`, `sheet`: the per-take stages."""
+"""`dualhuman sync`, `fuse`, `fit`, `contacts`, `render`, `sheet`: the per-take stages.
+
+Each publishes its new result only once it is complete (a failed run keeps the previous one) and
+says which runs that read it are stale now (:mod:`dualhuman_builder.workspace.runner`)."""
 
 from __future__ import annotations
 
@@ -7,6 +10,18 @@ from pathlib import Path
 import click
 
 from dualhuman_builder.cli.app import console, main
+
+
+def _made_stale(res) -> None:
+    """Say which runs a stage's new result made stale (they run again when their commands do)."""
+    from rich.markup import escape
+
+    from dualhuman_builder.workspace.workspace import printable
+
+    if res.made_stale:
+        runs = ", ".join(f"{stage} of {take}" + (f"/{seq}" if seq else "") for take, seq, stage in res.made_stale)
+        console.print(f"[yellow]now stale[/] (they read this result; run them again): {escape(printable(runs))}",
+                      highlight=False, soft_wrap=True)  # fmt: skip
 
 
 def _take_options(f):
@@ -22,7 +37,8 @@ def _take_options(f):
                           "the same segment keeps the mount solved there (one strapped again since is solved afresh), "
                           "and the trackers' lag behind the suits is averaged with the one measured there unless the "
                           "two differ by over 3 ms (then a warning). For takes whose actors hardly move.")(f)
-    f = click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")(f)
+    f = click.option("--force", is_flag=True,
+                     help="Run again even when the stage is up to date; the stages that read it become stale.")(f)
     return click.argument("workspace", type=click.Path(file_okay=False, exists=True, path_type=Path))(f)
 
 
@@ -55,6 +71,7 @@ def sync(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
         res = run_sync(ws, take, fps=fps, use_trackers=not no_trackers, force=force, log=console.print,
                        suit_chain=not no_suit_chain, mounts_from=mounts_from)  # fmt: skip
         console.print(f"sync {'up to date' if res.skipped else 'done'}: {res.artifacts.get('sync.json')}", highlight=False)
+        _made_stale(res)
 
 
 @main.command()
@@ -65,7 +82,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 
     Suit orientations (heading-corrected against the tracker world, each segment turned by the
     misalignment sync solved), positions corrected by the trackers (the drift-free reference);
-    tracker jumps rejected, dropouts bridged smoothly. Runs `sync` first if needed.
+    tracker jumps rejected, dropouts bridged smoothly. Runs `sync` first if needed (or stale).
 
     Example:  dualhuman fuse WS --take T001
     """
@@ -76,6 +93,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
         res = run_fuse(ws, take, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
                        suit_chain=not no_suit_chain, mounts_from=mounts_from)  # fmt: skip
         console.print(f"fuse {'up to date' if res.skipped else 'done'}", highlight=False)
+        _made_stale(res)
 
 
 @main.command()
@@ -126,6 +144,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
                       suit_chain=not no_suit_chain, workers=workers, mounts_from=mounts_from)  # fmt: skip
         console.print(f"fit {'up to date' if res.skipped else 'done'}; report: {res.artifacts.get('report.html')}", highlight=False)
+        _made_stale(res)
 
 
 @main.command()
@@ -138,7 +157,8 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Processes to spread the frames over (1: in this one). Default: one per two CPUs, up to 8, when each "
                    "gets at least 48 frames. The result does not depend on it.")
-@click.option("--force", is_flag=True, help="Run again even when the stage is up to date.")
+@click.option("--force", is_flag=True,
+              help="Run again even when the stage is up to date; the stages that read it become stale.")
 def contacts(workspace: Path, take: str, threshold: float, band: float, workers: int | None, force: bool):
     """Per-vertex contacts between the two fitted bodies, frame by frame.
 
@@ -160,6 +180,7 @@ def contacts(workspace: Path, take: str, threshold: float, band: float, workers:
     with Workspace.open(workspace) as ws:
         res = run_contacts(ws, take, threshold_m=threshold, band_m=band, force=force, log=console.print, workers=workers)
         console.print(f"contacts {'up to date' if res.skipped else 'done'}: {res.artifacts.get('contacts.json')}", highlight=False)
+        _made_stale(res)
 
 
 @main.command()
@@ -179,7 +200,7 @@ def contacts(workspace: Path, take: str, threshold: float, band: float, workers:
 @click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Render at most this many frames.")
 @click.option("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb, else llvm_ad_rgb, else scalar_rgb).")
 @click.option("--no-sheet", is_flag=True, help="Do not draw the contact sheet afterwards.")
-@click.option("--force", is_flag=True, help="Render again even when the stage is up to date.")
+@click.option("--force", is_flag=True, help="Render again even when the stage is up to date; the sheet becomes stale.")
 def render(workspace: Path, take: str, views: int, size: int, spp: int, radius: float, height: float, fov: float,
            jitter_seed: int | None, rig_file: Path | None, template: str, every: int, max_frames: int | None,
            variant: str | None, no_sheet: bool, force: bool):  # fmt: skip
@@ -206,3 +227,5 @@ def render(workspace: Path, take: str, views: int, size: int, spp: int, radius: 
         if not no_sheet:
             sheet = run_sheet(ws, take, force=force, log=console.print)
             console.print(f"contact sheet: {sheet.artifacts.get('contact_sheet.png')}", highlight=False)
+        else:
+            _made_stale(res)

@@ -36,10 +36,13 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
     """Show which pipeline stages have run for each take and sequence of WORKSPACE.
 
     One line per take, and an indented line per sequence of it; one column per stage, in
-    pipeline order, with a mark for its state: done, failed, running, interrupted (its process
-    is gone), or not run yet. scene, devices and capture run per sequence, the other stages per
-    take. Runs that failed or did not finish are listed below with their errors. Read-only:
-    works on a workspace you cannot write to. Exit status 1 when --verify finds a problem.
+    pipeline order, with a mark for its state: done, stale (a stage it reads has a new result
+    since: run it again), failed, running, interrupted (its process is gone), or not run yet.
+    scene, devices and capture run per sequence, the other stages per take. Runs that are not
+    done are listed below with the reason. A re-run that failed keeps the previous result and its
+    state (--long shows the failure). Control characters in names are shown escaped (\\x1b).
+
+    Read-only: works on a workspace you cannot write to. Exit status 1 when --verify finds a problem.
 
     \b
     Examples:
@@ -47,15 +50,18 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
       dualhuman status WS --long
       dualhuman status WS --verify
     """
+    from rich.markup import escape
+
     from dualhuman_builder.cli.console import is_utf8, status_grid, status_long
     from dualhuman_builder.pipeline import STAGES
     from dualhuman_builder.workspace import Workspace
+    from dualhuman_builder.workspace.workspace import printable
 
     with Workspace.open(workspace, readonly=True) as ws:
         rows = ws.status_rows()
         problems = ws.verify() if verify else []
         if as_json:
-            click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))
+            click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))  # JSON escapes control characters
         else:
             title = f"workspace {ws.root}"
             if long_:
@@ -66,7 +72,7 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
                 console.print(line, soft_wrap=True, highlight=False)
             if verify:
                 for p in problems:
-                    console.print(f"[red]problem:[/] {p}", highlight=False, soft_wrap=True)
+                    console.print(f"[red]problem:[/] {escape(printable(p))}", highlight=False, soft_wrap=True)
                 console.print("[green]all artifacts match the catalog[/]" if not problems else f"{len(problems)} problem(s)")
     if problems:
         sys.exit(1)
@@ -127,17 +133,23 @@ def rig():
 @click.argument("rig_file", type=click.Path(dir_okay=False, path_type=Path))
 def rig_check(rig_file: Path):
     """Check RIG_FILE: sources, actors, MVN character IDs, tracker segments, and its segment
-    mapping's bones. Prints a summary, or the first problem with its fix (exit status 2)."""
+    mapping's bones. Prints a summary, or the first problem with its fix (exit status 2).
+
+    Then a warning for what would let strangers in (the rig stays valid, exit status 0): a UDP
+    source listening on every interface without allow=, a vive+udp source without serials=, a
+    worn tracker that no serials= lists."""
     from dualhuman_builder.rig import load_rig
 
     r = load_rig(rig_file)
     console.print(f"rig {r.name!r} is valid: {len(r.sources)} sources, {len(r.actors)} actors, "
                   f"mapping {r.mapping.path.name}")  # fmt: skip
     for s in r.sources:
-        console.print(f"  source {s.name}: {s.url}", highlight=False)
+        console.print(f"  source {s.name}: {s.url}", highlight=False, markup=False, soft_wrap=True)
     for a in r.actors:
         console.print(f"  actor {a.name}: source {a.source}, character {a.character}, {len(a.trackers)} trackers",
                       highlight=False)  # fmt: skip
+    for w in r.warnings():
+        console.print(f"warning: {w}", highlight=False, markup=False, soft_wrap=True)
 
 
 @rig.command("add")

@@ -66,7 +66,7 @@ def run_contacts(ws, take: str, threshold_m: float = DEFAULT_THRESHOLD_M, band_m
                 "frame_pairs_per_s": st["frame_pairs_per_s"]}  # fmt: skip
 
     params = {"threshold_m": float(threshold_m), "band_m": float(band_m), "merge_gap": int(merge_gap)}
-    return ws.run_stage("contacts", compute, take=take, params=params, depends_on=[("fit", None)],
+    return ws.run_stage(CONTACTS, compute, take=take, params=params, depends_on=[("fit", None)],
                         version=STAGE_VERSION, force=force)  # fmt: skip
 
 

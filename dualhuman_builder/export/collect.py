@@ -73,9 +73,20 @@ def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: 
     from dualhuman_builder.export.writer import export_dataset
 
     vocabulary = _vocabulary(ws)
+    from dualhuman_builder.contacts.stage import CONTACTS
+    from dualhuman_builder.fit.stage import FIT
+    from dualhuman_builder.render.stage import RENDER
+
     items, left_out = workspace_items(ws, takes, vocabulary)
+    for item in items:  # a stale optional part is left out of the item: say why
+        stale = [s.name for s in (CONTACTS, RENDER) if s.state(ws, item.seq_id) == "stale"]
+        if stale:
+            log(f"WARNING: take {item.seq_id!r}: {' and '.join(stale)} stale (an input changed since), exported without; "
+                f"run `dualhuman {stale[0]} WS --take {item.seq_id}`")
     if left_out:
-        msg = f"takes without a complete fit, left out: {left_out}"
+        stale = [t for t in left_out if FIT.state(ws, t) == "stale"]
+        msg = f"takes without a complete fit, left out: {left_out}" + (
+            f" ({stale} stale: an input changed since the fit)" if stale else "")
         if strict:
             raise WorkspaceError(msg, path=ws.root, fix="run `dualhuman fit WS --take T` for each, or drop --strict")
         log("WARNING: " + msg)

@@ -53,7 +53,7 @@ def run_fuse(ws, take: str, force: bool = False, log: Callable = print, **sync_k
         out.path("fuse.json").write_text(json.dumps(stats, indent=2))
         return {"fused_with_trackers": {k: v["fused_with_trackers"] for k, v in stats.items()}}
 
-    return ws.run_stage("fuse", compute, take=take, depends_on=[("sync", None)], version=FIT_VERSION, force=force)
+    return ws.run_stage(FUSE, compute, take=take, depends_on=[("sync", None)], version=FIT_VERSION, force=force)
 
 
 def load_fused(ws, take: str) -> tuple:
@@ -134,7 +134,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         return summary
 
     params = {k: getattr(config, k) for k in config.__dataclass_fields__}
-    return ws.run_stage("fit", compute, take=take, params=params, depends_on=[("fuse", None)],
+    return ws.run_stage(FIT, compute, take=take, params=params, depends_on=[("fuse", None)],
                         version=FIT_VERSION, force=force)  # fmt: skip
 
 

@@ -200,7 +200,8 @@ SHEET = Stage("sheet", per="take", artifacts=("contact_sheet.png",), reads=("ren
 
 def run_sheet(ws, take: str, force: bool = False, log=print):
     """The ``sheet`` workspace stage: ``contact_sheet.png`` of the take's render, with the contacts
-    stage's labels on the meshes when that stage is complete."""
+    stage's labels on the meshes when that stage is complete (not when it is stale: then a note
+    says so, and the next contacts run makes the sheet stale)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.contacts.stage import CONTACTS, load_contacts
     from dualhuman_builder.fit.stage import load_bodies
@@ -208,6 +209,9 @@ def run_sheet(ws, take: str, force: bool = False, log=print):
 
     RENDER.artifact(ws, take, "render.json")  # a clear error when the render is not done
     have_contacts = CONTACTS.done(ws, take)
+    if CONTACTS.state(ws, take) == "stale":
+        log(f"the contacts of {take} are stale: the sheet is drawn without them (run `{CONTACTS.how_to_run(ws, take)}`, "
+            "then the sheet again)")  # fmt: skip
 
     def compute(out):
         seq = load_bodies(ws, take)
@@ -218,4 +222,4 @@ def run_sheet(ws, take: str, force: bool = False, log=print):
         return info
 
     depends = [("render", None)] + ([("contacts", None)] if have_contacts else [])
-    return ws.run_stage("sheet", compute, take=take, params={"contacts": have_contacts}, depends_on=depends, force=force)
+    return ws.run_stage(SHEET, compute, take=take, params={"contacts": have_contacts}, depends_on=depends, force=force)

@@ -35,9 +35,10 @@ with the same sequence, cameras, template and spp renders only the frames withou
 (different settings start afresh; a finished render removes its markers unless asked to keep
 them). A full disk (``ENOSPC``) stops with a :class:`RenderError` saying how many frames are
 complete; re-running resumes. The workspace stage keeps its partial output in
-``WS/scratch/render/<take>/<key>`` (the stage runner empties its own folder on every run; ``key``
+``WS/scratch/render/<take>/<key>`` (the stage runner's staging folder is new on every run; ``key``
 hashes the parameters and the fit result), hard-links the finished files into the stage's
-artifacts and deletes the scratch folder once the stage is recorded done.
+staging folder, which the runner publishes in place of the previous render, and deletes the
+scratch folder once the stage is recorded done.
 """
 
 from __future__ import annotations
@@ -418,7 +419,7 @@ def run_render(ws, take: str, views: int = 8, size=512, spp: int = DEFAULT_SPP, 
         return {k: summary[k] for k in ("variant", "spp", "template", "size", "views", "seconds", "images_per_s",
                                         "frames_rendered", "frames_resumed", "visible_rate")} | {"frames": len(summary["frames"])}  # fmt: skip
 
-    res = ws.run_stage("render", compute, take=take, params=params, depends_on=[("fit", None)], version=STAGE_VERSION,
+    res = ws.run_stage(RENDER, compute, take=take, params=params, depends_on=[("fit", None)], version=STAGE_VERSION,
                        force=force)  # fmt: skip
     shutil.rmtree(scratch, ignore_errors=True)
     if scratch_root.is_dir() and not any(scratch_root.iterdir()):

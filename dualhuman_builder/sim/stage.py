@@ -87,7 +87,7 @@ def run_scene(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple
             f"{100 * sc.stats['contact_frames_share']:.0f} % of the contact phase; rendering previews...")  # fmt: skip
         return {**write_scene_views(body, sc, out), "quality": sc.stats}
 
-    return ws.run_stage("scene", compute, take=take, sequence=sequence,
+    return ws.run_stage(SCENE, compute, take=take, sequence=sequence,
                         params={"actors": tuple(actors), "shapes": list(shapes), **params},
                         version=str(GENERATOR_VERSION), force=force)  # fmt: skip
 
@@ -105,7 +105,7 @@ def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, lo
             json.dump(summary, f, indent=2)
         return {"samples": sum(summary["samples"].values())}
 
-    return ws.run_stage("devices", compute, take=take, sequence=sequence, params={"seed": seed},
+    return ws.run_stage(DEVICES, compute, take=take, sequence=sequence, params={"seed": seed},
                         depends_on=[("scene", sequence)], force=force)  # fmt: skip
 
 

@@ -33,15 +33,32 @@ SYNC = Stage("sync", per="take", artifacts=(SYNC_FILE, REPORT_FILE), reads=("cap
 def recording(ws, take: str) -> tuple[Path, list[tuple[str, str | None]]]:
     """``(path, depends_on)``: the take's recording and the stage runs it came from (its
     ``capture`` stage, which then makes ``sync`` stale when it runs again; none for a file
-    registered with the take)."""
+    registered with the take). A :class:`WorkspaceError` saying what to run when there is none,
+    or its capture stage is not done (stale, failed), or the file is gone."""
+    captures = {}
     for seq in ws.sequences(take):
-        if CAPTURE.done(ws, take, seq.name):
-            return CAPTURE.artifact(ws, take, TAKE_FILE, seq.name), [("capture", seq.name)]
+        state = CAPTURE.state(ws, take, seq.name)
+        if state == "done":
+            return _present(CAPTURE.artifact(ws, take, TAKE_FILE, seq.name), take), [("capture", seq.name)]
+        if state is not None:
+            captures[seq.name] = state
     files = [f for f in ws.take(take).files if str(f["path"]).endswith(".mcap")]
-    if not files:
-        raise WorkspaceError(f"take {take!r} has no recorded .mcap file to sync",
-                             fix="record it with `dualhuman capture -w WS --take T ...`")  # fmt: skip
-    return ws.root / files[0]["path"], []
+    if files:
+        return _present(ws.root / files[0]["path"], take), []
+    if captures:
+        seq, state = next(iter(captures.items()))
+        raise WorkspaceError(f"take {take!r} has no recording to sync: the capture stage of {take}/{seq} is {state}",
+                             path=ws.root, fix=CAPTURE.how_to_run(ws, take, seq))  # fmt: skip
+    raise WorkspaceError(f"take {take!r} has no recorded .mcap file to sync", path=ws.root,
+                         fix=f"record it with `dualhuman capture -w {ws.root} --take {take} ...`, or register a "
+                             f"recorded take file with `dualhuman import {ws.root} FILE.mcap --take {take}`")  # fmt: skip
+
+
+def _present(path: Path, take: str) -> Path:
+    if not path.is_file():
+        raise WorkspaceError(f"the recording of take {take!r} is missing", path=path,
+                             fix="restore the file (`dualhuman status WS --verify` lists what else is missing)")  # fmt: skip
+    return path
 
 
 def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force: bool = False, log: Callable = print,
@@ -49,7 +66,9 @@ def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force:
     """Sync ``take`` (:func:`~dualhuman_builder.sync.timeline.synchronise`) at ``fps`` frames per
     second. ``suit_chain=False``: do not solve the suit's segment misalignments with the mounts.
     ``mounts_from``: the calibration take of the same studio day, synced first if needed, whose
-    tracker mounts and lags carry over; a change of its sync makes this one stale."""
+    tracker mounts and lags carry over; a change of its sync makes this one stale. Everything it
+    needs (the recording, the calibration take's sync) is checked before the stage starts; the
+    runner publishes the new result only once it is complete."""
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.sync.timeline import SyncResult, synchronise
 
@@ -63,6 +82,7 @@ def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force:
         run_sync(ws, mounts_from, fps=fps, log=log, suit_chain=suit_chain)
         rec = SYNC.record(ws, mounts_from)
         extra.update(mounts_from=mounts_from, mounts_sha256=rec["artifacts"][SYNC_FILE]["sha256"])
+        depends_on = [*depends_on, ("sync", None, mounts_from)]
 
     def compute(out):
         columns = read_columns(take_file)
@@ -75,7 +95,7 @@ def run_sync(ws, take: str, fps: float = 30.0, use_trackers: bool = True, force:
                 "trackers": {a.actor: len(a.serials) for a in sync.actors},
                 **({"mounts_from": sync.report.get("mounts_from", {})} if mounts_from else {})}  # fmt: skip
 
-    return ws.run_stage("sync", compute, take=take, params={"fps": fps, "trackers": use_trackers, **extra},
+    return ws.run_stage(SYNC, compute, take=take, params={"fps": fps, "trackers": use_trackers, **extra},
                         depends_on=depends_on, version=SYNC_VERSION, force=force)  # fmt: skip
 
 

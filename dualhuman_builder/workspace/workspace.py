@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -34,7 +35,33 @@ from dualhuman_builder.workspace.catalog import (
 TAKE_LEVEL = "_take"
 
 
+#: Unicode categories a name may not contain, and that :func:`printable` escapes: control
+#: characters (terminal escapes, newlines), format characters (bidirectional overrides),
+#: surrogates, private use, line and paragraph separators.
+UNSAFE_CATEGORIES = frozenset({"Cc", "Cf", "Cs", "Co", "Zl", "Zp"})
+
+
+def printable(text: str) -> str:
+    """``text`` with every character of :data:`UNSAFE_CATEGORIES` written as its escape
+    (``\\x1b``, ``\\n``, ``\\u202e``), so that printing a name cannot move the cursor, clear the
+    screen or reorder what follows."""
+    return "".join(c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in UNSAFE_CATEGORIES else c
+                   for c in str(text))  # fmt: skip
+
+
+def check_printable(kind: str, text: str) -> str:
+    """``text``, or a :class:`WorkspaceError` naming the control or format characters it holds."""
+    bad = sorted({c for c in str(text) if unicodedata.category(c) in UNSAFE_CATEGORIES})
+    if bad:
+        raise WorkspaceError(
+            f"{kind} '{printable(text)}' contains control characters ({', '.join(map(printable, bad))})",
+            fix=f"give the {kind} without control characters (no escape sequences, tabs or line breaks)",
+        )
+    return text
+
+
 def _check_name(kind: str, name: str) -> str:
+    check_printable(f"{kind} name", name)
     if not name or name.startswith(".") or name.startswith("_") or any(c in name for c in "/\\\0") or len(name) > 128:
         raise WorkspaceError(
             f"invalid {kind} name {name!r}",
@@ -121,7 +148,16 @@ class Workspace:
                         fix=f"fix permissions (chmod -R u+w {root}) or copy the workspace somewhere writable",
                     )
         conn = open_catalog(root / CATALOG_NAME, readonly=readonly)
-        return cls(root, conn, readonly=readonly)
+        ws = cls(root, conn, readonly=readonly)
+        if not readonly:
+            from dualhuman_builder.workspace.runner import finish_publications
+
+            try:
+                finish_publications(ws)  # stage results a killed process left half published
+            except BaseException:
+                ws.close()
+                raise
+        return ws
 
     def close(self) -> None:
         self.conn.close()
@@ -183,6 +219,7 @@ class Workspace:
 
         self._require_writable()
         rig = load_rig(path)
+        check_printable("rig name", rig.name)
         with transaction(self.conn):
             self.conn.execute(
                 "INSERT INTO rigs (name, path, sha256, content, created_at) VALUES (?, ?, ?, ?, ?) "
@@ -288,6 +325,8 @@ class Workspace:
         """Register frames ``[frame_start, frame_stop)`` of ``take`` as sequence ``name``."""
         self._require_writable()
         _check_name("sequence", name)
+        for label in labels:
+            check_printable("label", label)
         tid = self._take_id(take)
         if not 0 <= int(frame_start) < int(frame_stop):
             raise WorkspaceError(f"sequence {name!r}: need 0 <= frame_start < frame_stop, got {frame_start}, {frame_stop}")
@@ -330,6 +369,12 @@ class Workspace:
         self._require_writable()
         rows = []
         for a in annotations:
+            check_printable("annotator name", a.annotator)
+            for kind, value in (("actor name", a.actor), ("reactor name", a.reactor), ("annotation source", a.source)):
+                if value is not None:
+                    check_printable(kind, value)
+            for label in a.labels:
+                check_printable("label", label)
             tid = self._take_id(a.take)
             sid = self._sequence_id(a.take, a.sequence)
             rows.append((tid, sid, a.annotator, json.dumps(list(a.labels)), json.dumps(list(a.texts), ensure_ascii=False),
@@ -366,12 +411,12 @@ class Workspace:
     def artifact_dir(self, stage: str, take: str, sequence: str | None = None) -> Path:
         return self.root / "artifacts" / _check_name("take", take) / (sequence or TAKE_LEVEL) / stage
 
-    def run_stage(self, stage: str, compute, *, take: str, sequence: str | None = None,
-                  params: Mapping[str, Any] | None = None, depends_on: Sequence[tuple[str, str | None]] = (),
+    def run_stage(self, stage, compute, *, take: str, sequence: str | None = None,
+                  params: Mapping[str, Any] | None = None, depends_on: Sequence[Sequence] = (),
                   version: str = "1", force: bool = False):  # fmt: skip
-        """Run ``compute(out)`` for one (take, sequence, stage) unless it is up to date.
-
-        See :func:`dualhuman_builder.workspace.runner.run_stage`.
+        """Run ``compute(out)`` for one (take, sequence, stage) unless it is up to date, and publish
+        its result atomically (``stage``: a :class:`~dualhuman_builder.workspace.runner.Stage` or
+        its name). See :func:`dualhuman_builder.workspace.runner.run_stage`.
         """
         from dualhuman_builder.workspace.runner import run_stage
 
@@ -391,13 +436,15 @@ class Workspace:
         where = f"{take}/{sequence}" if sequence else take
         if rec is None or rec["status"] != "done":
             state = "never ran" if rec is None else rec["status"]
+            if rec is not None and rec["status"] == "stale" and rec["stale_reason"]:
+                state += f": {rec['stale_reason']}"
             raise WorkspaceError(f"stage {stage!r} of {where} is not complete ({state})",
                                  path=self.root, fix=f"run the {stage} stage first")  # fmt: skip
         return {name: self.root / a["path"] for name, a in rec["artifacts"].items()}
 
     def verify(self) -> list[str]:
-        """Re-hash every take source file and every completed stage's artifacts against the
-        catalog; returns the problems found (empty when everything matches)."""
+        """Re-hash every take source file and every published stage result's artifacts (done or
+        stale) against the catalog; returns the problems found (empty when everything matches)."""
         from dualhuman_builder.workspace.runner import _record, artifact_problems
 
         problems = []
@@ -405,11 +452,17 @@ class Workspace:
             problems += [f"take {take}: {p}" for p in self.verify_take_files(take)]
         rows = self.conn.execute(
             "SELECT r.*, t.name AS take_name, s.name AS seq_name FROM stage_runs r JOIN takes t ON t.id = r.take_id "
-            "LEFT JOIN sequences s ON s.id = r.sequence_id WHERE r.status = 'done' ORDER BY t.name, s.name, r.stage"
+            "LEFT JOIN sequences s ON s.id = r.sequence_id WHERE r.status IN ('done', 'stale') "
+            "ORDER BY t.name, s.name, r.stage"
         ).fetchall()
         for r in rows:
             where = f"{r['take_name']}/{r['seq_name']}" if r["seq_name"] else r["take_name"]
-            problems += [f"{where} {r['stage']}: {p}" for p in artifact_problems(self, _record(r), verify=True)]
+            rec = _record(r)
+            if rec["status"] in ("publishing", "interrupted"):
+                problems.append(f"{where} {r['stage']}: its new result is being published, or was cut off while it was "
+                                "(open the workspace for writing, e.g. run the stage again, to finish it)")  # fmt: skip
+                continue
+            problems += [f"{where} {r['stage']}: {p}" for p in artifact_problems(self, rec, verify=True)]
         return problems
 
     def status_rows(self) -> list[dict[str, Any]]:

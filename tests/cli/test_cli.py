@@ -171,7 +171,7 @@ def test_status_fits_80_columns_without_table_drawing(tmp_path):
     assert [_cell(lines, "  handshake", s) for s in STAGE_NAMES] == ["✓", "✓", "✓", " ", " ", " ", " ", " ", " "]
     assert _cell(lines, "CALIB ", "sync") == "▶" and _cell(lines, "CALIB ", "fit") == "·"
     assert "0-120" in next(line for line in lines if line.startswith("  handshake"))
-    assert "✓ done  ✗ failed  ▶ running  ! interrupted  · not run" in r.output
+    assert "✓ done  ~ stale  ✗ failed  ▶ running  ! interrupted  · not run" in r.output
     # what needs a look, with the error's first line (its traceback only with --long and --json)
     assert "DEMO render: failed: RuntimeError: renderer ran out of memory" in lines and "CALIB sync: running" in lines
     assert "_boom" not in r.output

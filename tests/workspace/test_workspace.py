@@ -135,7 +135,7 @@ def test_failed_stage_records_error_and_keeps_no_artifacts(ws):
         ws.run_stage("fit", boom, take="T1", sequence="s1", params={})
     rec = ws.stage_record("fit", "T1", "s1")
     assert rec["status"] == "failed" and "solver diverged at frame 7" in rec["error"]
-    assert list((ws.root / "artifacts/T1/s1/fit").iterdir()) == []
+    assert list((ws.root / "artifacts/T1/s1").iterdir()) == []  # no folder, no staging folder left
     with pytest.raises(WorkspaceError, match=r"not complete \(failed\)"):
         ws.artifacts("fit", "T1", "s1")
     r = ws.run_stage("fit", _write("ok.npz", "1"), take="T1", sequence="s1", params={})
@@ -155,25 +155,26 @@ KILL_SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_stage_killed_mid_write_leaves_nothing_that_passes_for_complete(ws):
+def test_stage_killed_mid_write_keeps_the_previous_result(ws):
     _take(ws)
-    # an older complete run exists: the killed re-run must not leave it looking current
+    # an older complete run exists: the killed re-run leaves it as it was, published and done
     ws.run_stage("fit", _write("bodies.npz", "old"), take="T1", sequence="s1", params={"w": 0})
     proc = subprocess.run([sys.executable, "-c", KILL_SCRIPT, str(ws.root)], capture_output=True)
     assert proc.returncode == -9
     final = ws.root / "artifacts/T1/s1/fit"
-    assert not (final / "bodies.npz").exists()
-    leftovers = [p for p in final.iterdir()]
-    assert len(leftovers) == 1 and leftovers[0].name.startswith(STAGING_PREFIX)  # hidden staging folder only
+    assert [p.name for p in final.iterdir()] == ["bodies.npz"] and (final / "bodies.npz").read_text() == "old"
+    leftovers = [p.name for p in final.parent.iterdir() if p.name != "fit"]
+    assert len(leftovers) == 1 and leftovers[0].startswith(f".fit{STAGING_PREFIX}")  # the killed run's staging folder
     rec = ws.stage_record("fit", "T1", "s1")
-    assert rec["status"] == "running" and rec["artifacts"] == {}
-    row = [r for r in ws.status_rows() if r["sequence"] == "s1"][0]
-    assert row["stages"]["fit"]["state"] == "interrupted"
-    with pytest.raises(WorkspaceError, match=r"not complete \(running\)"):
-        ws.artifacts("fit", "T1", "s1")
+    assert rec["status"] == "done" and rec["params"] == {"w": 0} and rec["attempt"] == "running"
+    info = [r for r in ws.status_rows() if r["sequence"] == "s1"][0]["stages"]["fit"]
+    assert info["state"] == "done" and info["error"] == "a re-run was interrupted (the previous result is kept)"
+    assert ws.artifacts("fit", "T1", "s1")["bodies.npz"].read_text() == "old" and ws.verify() == []
     r = ws.run_stage("fit", _write("bodies.npz", "new"), take="T1", sequence="s1", params={"w": 1})
     assert not r.skipped and r.artifacts["bodies.npz"].read_text() == "new"
-    assert [p.name for p in final.iterdir()] == ["bodies.npz"]  # staging folder of the killed run swept
+    assert [p.name for p in final.parent.iterdir()] == ["fit"]  # staging folder of the killed run swept
+    assert [p.name for p in final.iterdir()] == ["bodies.npz"]
+    assert ws.stage_record("fit", "T1", "s1")["attempt"] is None
 
 
 def test_a_stage_running_elsewhere_is_not_started_twice(ws):
