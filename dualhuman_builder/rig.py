@@ -14,7 +14,7 @@ model (looked up beside the rig file, then in the toolkit's ``rigs/``; default
 
     [[sources]]
     name = "suits"
-    url = "mvn+udp://0.0.0.0:9763"
+    url = "mvn+udp://0.0.0.0:9763?allow=192.168.10.11"
 
     [[actors]]
     name = "alice"
@@ -22,6 +22,12 @@ model (looked up beside the rig file, then in the toolkit's ``rigs/``; default
     character = 0
     [actors.trackers]                # tracker serial = MVN segment
     "LHR-A1" = "Pelvis"
+
+Loading checks what would make the rig unusable (:class:`~dualhuman_builder.errors.RigError`);
+:meth:`Rig.warnings` what would let strangers in: a UDP source listening on every interface
+without ``allow=`` (any machine that reaches the port can send samples), a ``vive+udp`` source
+without ``serials=`` (any serial is kept, and invented ones compete for the tracker table), and an
+actor's tracker that no ``serials=`` lists (its poses would be dropped).
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import hashlib
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from dualhuman_builder.body.mapping import DEFAULT_MAPPING_PATH, MVN_SEGMENTS, SegmentMapping, load_segment_mapping
 from dualhuman_builder.errors import RigError
@@ -59,6 +65,9 @@ def tracker_site(segment: str) -> tuple[float, float, float]:
 
 #: URL schemes of capture sources (handlers live in :mod:`dualhuman_builder.capture`).
 SOURCE_SCHEMES = ("mvn+udp", "xbus", "mti+can", "vive+udp", "vive+usb", "sim")
+#: Schemes that listen on a UDP port, and the bind addresses that mean every interface.
+UDP_SCHEMES = ("mvn+udp", "vive+udp")
+ALL_INTERFACES = ("0.0.0.0", "::")
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,11 @@ class RigSource:
     @property
     def scheme(self) -> str:
         return urlsplit(self.url).scheme
+
+    @property
+    def query(self) -> dict[str, str]:
+        """The URL's query parameters (the last of a repeated one; capture refuses repeats)."""
+        return dict(parse_qsl(urlsplit(self.url).query, keep_blank_values=True))
 
 
 @dataclass(frozen=True)
@@ -97,6 +111,39 @@ class Rig:
             if s.name == name:
                 return s
         raise KeyError(name)
+
+    def warnings(self) -> list[str]:
+        """What would let a stranger's packets in, one sentence with its fix each (module
+        docstring); [] for a rig that names its senders and trackers."""
+        out = []
+        worn = {serial: a.name for a in self.actors for serial in a.trackers}
+        listed: set[str] = set()
+        vive = [s for s in self.sources if s.scheme == "vive+udp"]
+        for s in self.sources:
+            if s.scheme not in UDP_SCHEMES:
+                continue
+            query = s.query
+            try:
+                host = urlsplit(s.url).hostname or ""
+            except ValueError:
+                host = ""
+            if host in ALL_INTERFACES and not query.get("allow", "").strip():
+                out.append(f"source {s.name!r} listens on every interface ({s.url}) without allow=: any machine "
+                           "that reaches the port can send it samples; add allow=SENDER_IP (the machine that "
+                           "streams to it), or bind the studio network's own address")  # fmt: skip
+            if s.scheme == "vive+udp":
+                serials = [x.strip() for x in query.get("serials", "").split(",") if x.strip()]
+                listed.update(serials)
+                if not serials:
+                    hint = ",".join(sorted(worn)) if worn else "LHR-AAAA,LHR-BBBB"
+                    out.append(f"source {s.name!r} keeps every tracker serial it hears ({s.url}): any sender can "
+                               f"add trackers; add serials={hint}")  # fmt: skip
+        if vive and all(s.query.get("serials", "").strip() for s in vive):
+            for serial, actor in worn.items():
+                if serial not in listed:
+                    out.append(f"tracker {serial!r} worn by {actor!r} is in no serials= of the rig's vive+udp "
+                               "sources: its poses would be dropped; add it to serials=")  # fmt: skip
+        return out
 
 
 def _mapping_path(name, rig_path: Path) -> Path:

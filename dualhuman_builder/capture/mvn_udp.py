@@ -30,29 +30,57 @@ Reassembly: datagrams of one message share (character, message type, sample coun
 joined by their 7-bit piece index once the last-piece bit has been seen and every index up to it
 is present. A message still incomplete when a message of the same character and type more than
 :data:`WINDOW` sample counters newer completes is dropped (``incomplete``, also at
-:meth:`~MvnDecoder.finish`); at most :data:`MAX_PENDING` messages
-and :data:`MAX_PENDING_BYTES` bytes wait (the oldest is dropped first: ``evicted``).
+:meth:`~MvnDecoder.finish`). At most :data:`MAX_PENDING` messages and :data:`MAX_PENDING_BYTES`
+bytes of pieces wait, checked at every piece: beyond, the oldest waiting message is dropped
+(``evicted``), and a message that alone would exceed the bytes is dropped itself (``evicted``).
 
 Characters: several actors share one port and differ only in the character-ID byte; each is its
 own stream (:attr:`SuitFrame.character`) with its own counters in :attr:`MvnDecoder.characters`.
 The u32 sample counter and the u32 time code are unwrapped per character (a signed 32-bit step
-from the newest value seen), so ``sample_counter``, ``time_code_ms`` and ``device_time_ns`` stay
-monotonic across a wrap. From the type-02 sample counters of each character:
+from the character's newest in-sequence pose; before its first pose, from its first message), so
+``sample_counter``, ``time_code_ms`` and ``device_time_ns`` stay monotonic across a wrap. Only
+in-sequence poses move that reference: a stray datagram cannot drag it.
+
+Sequence of the type-02 poses of each character. A pose is *in sequence* when it has the
+character's layout (segment names, props, finger segments) and its counter lies between
+:data:`SEEN_WINDOW` behind and :data:`JUMP_GAP` ahead of the newest, and no more than
+:data:`JUMP_GAP` before the oldest. Then:
 
 * ``lost``: counters skipped (a gap) between the oldest and newest seen; a late arrival takes its
   counter back out (loss at the very end of a stream is not seen);
 * ``out_of_order``: a counter older than the newest seen that had not arrived yet (yielded);
 * ``duplicate``: a datagram received before (a piece of a message still waiting, or any datagram
   of a message decoded among the last :data:`COMPLETED_MEMORY`), or a pose whose counter was
-  already yielded; never yielded twice;
-* a counter more than :data:`SEEN_WINDOW` behind the newest, or more than :data:`RESET_GAP`
-  ahead, is MVN restarting its counter (``counter_resets``, event ``counter-reset``), not loss.
+  already yielded; never yielded twice.
+
+A pose that is not in sequence (a far jump of the counter, another layout) is held back, not
+yielded and not counted as loss. Held poses that follow each other (same layout, counters within
+:data:`JUMP_GAP`) form a candidate stream (at most :data:`MAX_CANDIDATES` per character, the one
+heard from longest ago is dropped first). A candidate that reaches :data:`CONFIRM` poses before the
+character's stream moves forward again is the stream now: its poses are yielded, in arrival order,
+and it becomes the reference —
+
+* another layout (a prop added, finger tracking switched on): ``segment_count_changes``, event
+  ``segment-count-changed``; the counter goes on as before;
+* a forward jump the time code accounts for (at most :data:`MAX_RATE_HZ` counters per second of
+  time code, and under :data:`RESET_GAP`): an outage, its counters are ``lost``;
+* any other jump: MVN restarted its counter (``counter_resets``, event ``counter-reset``), not loss.
+
+Held poses whose candidate is dropped (the character's stream went on, a newer candidate took the
+place, or the stream ended: :meth:`MvnDecoder.finish`) are counted ``out_of_sequence``: a stray
+datagram (another sender using the character ID, a corrupted counter) adds at most
+:data:`JUMP_GAP` to ``lost`` and never moves the stream, and a lone pose of another segment count
+never flips the layout. Poses are therefore yielded with one layout per character between
+``segment-count-changed`` events. Other message types are yielded as they come.
 
 Liveness: a character is live from its first sample until it has sent nothing for ``stale``
 seconds of host time; going stale emits ``stale`` (noticed by the next datagram of any character,
 checked at most every :data:`STALE_CHECK_NS`, or by :meth:`MvnDecoder.status`), its next sample
 ``resumed``. A change of a character's pose layout (number of segments, props or finger segments:
-MVN recomposed the scene) emits ``segment-count-changed``; decoding goes on with the new layout.
+MVN recomposed the scene) emits ``segment-count-changed`` once confirmed (above). The
+``counter-reset`` and ``segment-count-changed`` events of a character come at most once per
+:data:`EVENT_INTERVAL_NS` of host time; those in between are counted only, and the next event
+says how many.
 
 MVN datagrams carry no checksum: corruption is caught only where it breaks the layout (ID string,
 sizes, item counts, strings, non-finite values, quaternion norms); a flipped bit in a position or
@@ -62,8 +90,10 @@ Counters (:attr:`Decoder.counters`): ``packets``, ``bytes``, ``samples`` (all ty
 (type 02), ``truncated`` (shorter than the header or than its payload-size field says),
 ``bad_header`` (ID string, payload size shorter than the datagram, inconsistent piece indices),
 ``bad_payload`` (a complete message that does not decode), ``incomplete``, ``evicted``, ``lost``,
-``duplicate``, ``out_of_order``, ``counter_resets``, ``unsupported_type``, ``other_character``
-(datagrams of characters not in ``characters=``), ``segment_count_changes``. Events: ``stale``,
+``duplicate``, ``out_of_order``, ``out_of_sequence``, ``counter_resets``, ``unsupported_type``,
+``other_character`` (datagrams of characters not in ``characters=``), ``segment_count_changes``.
+Memory is bounded: pieces as above, :data:`COMPLETED_MEMORY` message keys, per character
+2 x :data:`SEEN_WINDOW` counters and :data:`MAX_CANDIDATES` x :data:`CONFIRM` held poses. Events: ``stale``,
 ``resumed``, ``segment-count-changed``, ``counter-reset`` (entity ``mvn/<character>``),
 ``unsupported-type`` and ``other-character`` (entity ``mvn``).
 """
@@ -94,11 +124,23 @@ MAX_PENDING = 64
 MAX_PENDING_BYTES = 4 << 20
 #: Completed messages remembered (per decoder) to recognise their duplicated datagrams.
 COMPLETED_MEMORY = 4096
-#: Pose sample counters remembered per character to tell duplicates from late arrivals.
+#: Pose sample counters remembered per character to tell duplicates from late arrivals; a counter
+#: further behind the newest is out of sequence.
 SEEN_WINDOW = 1024
-#: A forward jump of the sample counter larger than this is a restart of MVN's counter, not loss
-#: (2^20 samples: over an hour at 240 Hz).
+#: Largest forward step of a character's pose counter taken at once (a quarter second at 240 Hz);
+#: a larger one is out of sequence until confirmed.
+JUMP_GAP = 64
+#: Held poses that confirm a candidate stream, and most candidate streams held per character.
+CONFIRM = 4
+MAX_CANDIDATES = 4
+#: A confirmed forward jump counts as loss when MVN's time code advanced enough for it at this many
+#: counters per second (MVN streams at most 240 Hz) and it is smaller than :data:`RESET_GAP`.
+MAX_RATE_HZ = 1000
+#: A confirmed jump of the sample counter this large or larger is a restart of MVN's counter, not
+#: loss (2^20 samples: over an hour at 240 Hz).
 RESET_GAP = 1 << 20
+#: Host ns between two ``counter-reset`` (or two ``segment-count-changed``) events of a character.
+EVENT_INTERVAL_NS = 1_000_000_000
 #: Pose samples over which ``rate_hz`` is measured (device time code).
 RATE_WINDOW = 64
 #: Feeds look for stale characters at most this often (host ns); :meth:`MvnDecoder.status` always.
@@ -119,46 +161,44 @@ def _type_label(t: int) -> str:
 class _Character:
     """One character's stream state (see :attr:`MvnDecoder.characters` for what is public)."""
 
-    __slots__ = ("id", "entity", "samples", "frames", "lost", "duplicate", "out_of_order", "incomplete",
-                 "counter_resets", "segments", "layout", "name", "last_ns", "live", "hi", "lo", "seen",
-                 "sc_raw", "sc_u", "tc_raw", "tc_u", "rate_tc")  # fmt: skip
+    __slots__ = ("id", "entity", "samples", "frames", "lost", "duplicate", "out_of_order", "out_of_sequence",
+                 "incomplete", "counter_resets", "segments", "layout", "key", "name", "last_ns", "live", "hi", "lo",
+                 "seen", "c0", "tc_ref", "rate_tc", "held", "arrivals", "quiet")  # fmt: skip
 
     def __init__(self, cid: int):
         self.id = cid
         self.entity = f"mvn/{cid}"
-        self.samples = self.frames = self.lost = self.duplicate = self.out_of_order = 0
+        self.samples = self.frames = self.lost = self.duplicate = self.out_of_order = self.out_of_sequence = 0
         self.incomplete = self.counter_resets = 0
-        self.segments = 0  # segments of the last pose
-        self.layout: tuple[int, int, int] | None = None  # (items, props, fingers) of the last pose
+        self.segments = 0  # segments of the stream's poses
+        self.layout: tuple[int, int, int] | None = None  # (items, props, fingers) of the stream's poses
+        self.key: tuple | None = None  # (segment names, props, fingers): what "the same layout" compares
         self.name = ""
         self.last_ns: int | None = None
         self.live = False
-        self.hi: int | None = None  # newest unwrapped pose counter
+        self.hi: int | None = None  # newest in-sequence unwrapped pose counter (the unwrapping reference)
         self.lo = 0  # oldest pose counter since the stream (re)started
         self.seen: set[int] = set()
-        self.sc_raw: int | None = None  # unwrapping references: newest raw value and its unwrapped value
-        self.sc_u = 0
-        self.tc_raw: int | None = None
-        self.tc_u = 0
+        self.c0: int | None = None  # the first counter, the reference until a pose arrives
+        self.tc_ref: int | None = None  # unwrapped time code of the newest in-sequence pose (or the first message)
         self.rate_tc: deque[int] = deque(maxlen=RATE_WINDOW)
+        self.held: list[_Held] = []  # candidate streams of out-of-sequence poses
+        self.arrivals = 0  # out-of-sequence poses so far (orders the candidates by when last heard)
+        self.quiet: dict[str, tuple[int, int]] = {}  # event kind -> (host ns of the last emitted, suppressed since)
 
     def unwrap_counter(self, raw: int) -> int:
-        if self.sc_raw is None:
-            self.sc_raw, self.sc_u = raw, raw
+        ref = self.hi if self.hi is not None else self.c0
+        if ref is None:
+            self.c0 = raw
             return raw
-        u = self.sc_u + ((raw - self.sc_raw + _HALF) % _U32) - _HALF
-        if u > self.sc_u:
-            self.sc_raw, self.sc_u = raw, u
-        return u
+        return ref + ((raw - ref + _HALF) % _U32) - _HALF
 
     def unwrap_time(self, raw: int) -> int:
-        if self.tc_raw is None:
-            self.tc_raw, self.tc_u = raw, raw
+        ref = self.tc_ref
+        if ref is None:
+            self.tc_ref = raw
             return raw
-        u = self.tc_u + ((raw - self.tc_raw + _HALF) % _U32) - _HALF
-        if u > self.tc_u:
-            self.tc_raw, self.tc_u = raw, u
-        return u
+        return ref + ((raw - ref + _HALF) % _U32) - _HALF
 
     def rate_hz(self) -> float:
         tc = self.rate_tc
@@ -169,9 +209,33 @@ class _Character:
 
     def stats(self) -> dict[str, Any]:
         return {"samples": self.samples, "frames": self.frames, "lost": self.lost, "duplicate": self.duplicate,
-                "out_of_order": self.out_of_order, "incomplete": self.incomplete,
+                "out_of_order": self.out_of_order, "out_of_sequence": self.out_of_sequence,
+                "incomplete": self.incomplete,
                 "counter_resets": self.counter_resets, "segments": self.segments, "name": self.name,
                 "last_ns": self.last_ns, "live": self.live, "rate_hz": self.rate_hz()}  # fmt: skip
+
+
+class _Held:
+    """One candidate stream: out-of-sequence poses of one layout whose counters follow each other,
+    as ``(counter, time code, sample)`` in arrival order."""
+
+    __slots__ = ("key", "layout", "items", "counters", "lo", "hi", "last")
+
+    def __init__(self, key: tuple, layout: tuple[int, int, int]):
+        self.key, self.layout = key, layout
+        self.items: list[tuple[int, int, SuitFrame]] = []
+        self.counters: set[int] = set()
+        self.lo = self.hi = self.last = 0
+
+    def follows(self, key: tuple, u: int) -> bool:
+        return key == self.key and self.lo - JUMP_GAP <= u <= self.hi + JUMP_GAP
+
+    def add(self, u: int, tc: int, sample: SuitFrame, arrival: int) -> None:
+        if not self.items:
+            self.lo = self.hi = u
+        self.items.append((u, tc, sample))
+        self.counters.add(u)
+        self.lo, self.hi, self.last = min(self.lo, u), max(self.hi, u), arrival
 
 
 class _Partial:
@@ -209,15 +273,15 @@ class MvnDecoder(Decoder):
         self._seen_unsupported: set[int] = set()
         self._stale_check_ns = -(1 << 62)
         for name in ("packets", "bytes", "samples", "frames", "truncated", "bad_header", "bad_payload", "incomplete",
-                     "evicted", "lost", "duplicate", "out_of_order", "counter_resets", "unsupported_type",
-                     "other_character", "segment_count_changes"):  # fmt: skip
+                     "evicted", "lost", "duplicate", "out_of_order", "out_of_sequence", "counter_resets",
+                     "unsupported_type", "other_character", "segment_count_changes"):  # fmt: skip
             self.counters[name] = 0
 
     # ------------------------------------------------------------------------------ public state
     @property
     def characters(self) -> dict[int, dict[str, Any]]:
         """Per character ID: ``samples``, ``frames``, ``lost``, ``duplicate``, ``out_of_order``,
-        ``incomplete``, ``counter_resets``, ``segments`` (of the last pose), ``name`` (from meta
+        ``out_of_sequence``, ``incomplete``, ``counter_resets``, ``segments`` (of the last pose), ``name`` (from meta
         data, "" until seen), ``last_ns``, ``live`` and ``rate_hz`` (see :meth:`status`)."""
         return {c: st.stats() for c, st in sorted(self._chars.items())}
 
@@ -274,10 +338,21 @@ class MvnDecoder(Decoder):
         return self._decode(key, tc, items, segs, props, fingers, payload, now)
 
     def finish(self) -> list:
-        """End of the stream: messages still missing pieces are counted ``incomplete``."""
+        """End of the stream: messages still missing pieces are counted ``incomplete``, poses still
+        held out of sequence ``out_of_sequence``."""
         for key in list(self._pending):
             self._drop_pending(key, "incomplete")
+        for st in self._chars.values():
+            self._drop_held(st)
         return []
+
+    def recover(self) -> None:
+        """After a fault the decoder did not foresee: drop the messages waiting for pieces
+        (``evicted``) and the held poses (``out_of_sequence``); counters and streams stay."""
+        for key in list(self._pending):
+            self._drop_pending(key, "evicted")
+        for st in self._chars.values():
+            self._drop_held(st)
 
     # ------------------------------------------------------------------------------ internals
     def _char(self, cid: int) -> _Character:
@@ -316,8 +391,7 @@ class MvnDecoder(Decoder):
         index, last = dgram & 0x7F, bool(dgram & LAST_PIECE)
         part = self._pending.get(key)
         if part is None:
-            while self._pending and (len(self._pending) >= MAX_PENDING
-                                     or self._pending_bytes + len(data) > MAX_PENDING_BYTES):  # fmt: skip
+            while len(self._pending) >= MAX_PENDING:
                 self._drop_pending(next(iter(self._pending)), "evicted")
             part = self._pending[key] = _Partial()
         if index in part.pieces:
@@ -328,6 +402,11 @@ class MvnDecoder(Decoder):
             self.counters["bad_header"] += 1  # piece indices that contradict each other
             return None
         payload = data[mvn.HEADER_SIZE:]
+        while self._pending_bytes + len(payload) > MAX_PENDING_BYTES:  # every piece, not only a new message's
+            oldest = next((k for k in self._pending if k != key), None)
+            self._drop_pending(key if oldest is None else oldest, "evicted")
+            if oldest is None:  # this message alone would exceed the bound
+                return None
         part.pieces[index] = (payload, items)
         part.nbytes += len(payload)
         self._pending_bytes += len(payload)
@@ -354,24 +433,42 @@ class MvnDecoder(Decoder):
             if WINDOW < (counter - key[2]) % _U32 < _HALF:
                 self._drop_pending(key, "incomplete")
 
-    def _pose_counter(self, st: _Character, u: int, now: int) -> bool:
-        """Loss / duplicate / order bookkeeping of pose counter ``u``; False if a duplicate."""
+    def _pose(self, st: _Character, u: int, tc: int, sample: SuitFrame, key: tuple, layout: tuple[int, int, int],
+              now: int) -> list:  # fmt: skip
+        """Route one decoded pose: in sequence (yielded) or held as a candidate (module docstring)."""
+        hi = st.hi
+        if hi is None:
+            st.key, st.layout, st.segments = key, layout, layout[0]
+        elif key != st.key or not max(hi - SEEN_WINDOW, st.lo - JUMP_GAP) <= u <= hi + JUMP_GAP:
+            return self._hold_pose(st, u, tc, sample, key, layout, now)
+        elif u > hi and st.held:  # the stream went on: what was held was not it
+            self._drop_held(st)
+        return self._frame(st, u, tc, sample, now)
+
+    def _frame(self, st: _Character, u: int, tc: int, sample: SuitFrame, now: int) -> list:
+        if not self._pose_counter(st, u, tc):
+            return []
+        self._remember((st.id, 2, u % _U32))  # a held pose is not: a stray must not shadow the real one
+        st.frames += 1
+        self.counters["frames"] += 1
+        st.rate_tc.append(tc)
+        return self._yield(st, sample, now)
+
+    def _pose_counter(self, st: _Character, u: int, tc: int) -> bool:
+        """Loss / duplicate / order bookkeeping of an in-sequence pose counter ``u`` (time code
+        ``tc``); False if a duplicate."""
         counters = self.counters
         if st.hi is None:
             st.hi = st.lo = u
+            st.tc_ref = tc
         elif u > st.hi:
             gap = u - st.hi - 1
-            if gap >= RESET_GAP:
-                self._reset(st, u, now, f"jumped ahead by {gap + 1}")
-            else:
-                st.lost += gap
-                counters["lost"] += gap
-                st.hi = u
+            st.lost += gap
+            counters["lost"] += gap
+            st.hi, st.tc_ref = u, tc
         elif u in st.seen:
             self._duplicate(st.id)
             return False
-        elif u < st.hi - SEEN_WINDOW:
-            self._reset(st, u, now, f"went back by {st.hi - u}")
         else:  # late: it was counted lost when its gap opened; before the first counter, the gap opens now
             st.out_of_order += 1
             counters["out_of_order"] += 1
@@ -390,14 +487,86 @@ class MvnDecoder(Decoder):
             st.seen = {c for c in seen if c >= floor}
         return True
 
-    def _reset(self, st: _Character, u: int, now: int, how: str) -> None:
-        st.counter_resets += 1
-        self.counters["counter_resets"] += 1
-        self.event(now, "counter-reset", st.entity, f"sample counter of MVN character {st.id} {how}: "
-                   "MVN restarted its stream; loss counting starts over")  # fmt: skip
-        st.hi = st.lo = u
-        st.seen = set()
-        st.sc_raw, st.sc_u = u % _U32, u
+    def _hold_pose(self, st: _Character, u: int, tc: int, sample: SuitFrame, key: tuple,
+                   layout: tuple[int, int, int], now: int) -> list:
+        """Keep an out-of-sequence pose with the candidate it follows; confirm that candidate once
+        it holds CONFIRM poses."""
+        st.arrivals += 1
+        cand = next((h for h in st.held if h.follows(key, u)), None)
+        if cand is None:
+            if len(st.held) >= MAX_CANDIDATES:
+                gone = min(st.held, key=lambda h: h.last)
+                st.held.remove(gone)
+                self._out_of_sequence(st, len(gone.items))
+            cand = _Held(key, layout)
+            st.held.append(cand)
+        elif u in cand.counters:
+            self._duplicate(st.id)
+            return []
+        cand.add(u, tc, sample, st.arrivals)
+        if len(cand.items) < CONFIRM:
+            return []
+        st.held.remove(cand)
+        self._drop_held(st)
+        return self._confirm(st, cand, now)
+
+    def _confirm(self, st: _Character, cand: _Held, now: int) -> list:
+        """The candidate is the character's stream now: classify the jump, then yield its poses."""
+        lo, lo_tc = min((u, tc) for u, tc, _ in cand.items)
+        hi = st.hi
+        gap = lo - hi - 1
+        outage = 0 <= gap < RESET_GAP and gap <= JUMP_GAP + max(0, lo_tc - st.tc_ref) * MAX_RATE_HZ // 1000
+        if not (hi - SEEN_WINDOW <= lo <= hi + JUMP_GAP or outage):
+            how = f"jumped ahead by {lo - hi}" if lo > hi else f"went back by {hi - lo}"
+            st.counter_resets += 1
+            self.counters["counter_resets"] += 1
+            self._event_limited(now, "counter-reset", st, f"sample counter of MVN character {st.id} {how}: MVN "
+                                "restarted its stream (or another sender uses this character ID); loss counting "
+                                "starts over")  # fmt: skip
+            st.hi, st.seen = None, set()
+            st.rate_tc.clear()
+        if cand.key != st.key:
+            items, props, fingers = cand.layout
+            self.counters["segment_count_changes"] += 1
+            self._event_limited(now, "segment-count-changed", st,
+                                f"MVN character {st.id} now sends {items} segments ({props} props, {fingers} finger "
+                                f"segments), was {st.layout[0]} ({st.layout[1]} props, {st.layout[2]} finger "
+                                "segments)")  # fmt: skip
+            st.key, st.layout, st.segments = cand.key, cand.layout, cand.layout[0]
+        out: list = []
+        for u, tc, sample in cand.items:
+            out += self._frame(st, u, tc, sample, now)
+        return out
+
+    def _out_of_sequence(self, st: _Character, n: int) -> None:
+        st.out_of_sequence += n
+        self.counters["out_of_sequence"] += n
+
+    def _drop_held(self, st: _Character) -> None:
+        for h in st.held:
+            self._out_of_sequence(st, len(h.items))
+        st.held = []
+
+    def _event_limited(self, now: int, kind: str, st: _Character, message: str) -> None:
+        """An event of ``kind`` for character ``st``, at most one per EVENT_INTERVAL_NS of host time."""
+        last, suppressed = st.quiet.get(kind, (None, 0))
+        if last is not None and now - last < EVENT_INTERVAL_NS:
+            st.quiet[kind] = (last, suppressed + 1)
+            return
+        if suppressed:
+            message += f" ({suppressed} more since the last such event, counted only)"
+        st.quiet[kind] = (now, 0)
+        self.event(now, kind, st.entity, message)
+
+    def _yield(self, st: _Character, sample, now: int) -> list:
+        st.samples += 1
+        self.counters["samples"] += 1
+        st.last_ns = now
+        if not st.live:
+            if st.samples > 1:
+                self.event(now, "resumed", st.entity, f"MVN character {st.id} is sending again")
+            st.live = True
+        return [sample]
 
     def _decode(self, key: tuple[int, int, int], raw_tc: int, items: int, segs: int, props: int, fingers: int,
                 payload: bytes, now: int) -> list:  # fmt: skip
@@ -423,24 +592,15 @@ class MvnDecoder(Decoder):
         except MvnFormatError:
             self.counters["bad_payload"] += 1
             return []
-        self._remember(key)
+        if mtype != 2:
+            self._remember(key)
         counter = st.unwrap_counter(raw_counter)
         tc = st.unwrap_time(raw_tc)
         head = (char, counter, tc, tc * 1_000_000, now)
         if mtype == 2:
-            if not self._pose_counter(st, counter, now):
-                return []
-            layout = (items, props, fingers)
-            if st.layout is not None and layout != st.layout:
-                self.counters["segment_count_changes"] += 1
-                self.event(now, "segment-count-changed", st.entity,
-                           f"MVN character {char} now sends {items} segments ({props} props, {fingers} finger "
-                           f"segments), was {st.layout[0]} ({st.layout[1]} props, {st.layout[2]} finger segments)")
-            st.layout, st.segments = layout, items
-            st.frames += 1
-            self.counters["frames"] += 1
-            st.rate_tc.append(tc)
             sample = SuitFrame(*head, pose.segment_names, pose.orientations, pose.positions)
+            return self._pose(st, counter, tc, sample, (pose.segment_names, props, fingers), (items, props, fingers),
+                              now)  # fmt: skip
         elif mtype == 25:
             sample = SuitTimeCode(*head, text, tod_ms)
         elif mtype == 12:
@@ -462,14 +622,7 @@ class MvnDecoder(Decoder):
             sample = AngularSegmentKinematics(*head, *ang[1:])
         else:
             sample = CenterOfMass(*head, com)
-        st.samples += 1
-        self.counters["samples"] += 1
-        st.last_ns = now
-        if not st.live:
-            if st.samples > 1:
-                self.event(now, "resumed", st.entity, f"MVN character {char} is sending again")
-            st.live = True
-        return [sample]
+        return self._yield(st, sample, now)
 
 
 def _characters_param(query: dict[str, str], url: str) -> frozenset[int] | None:
