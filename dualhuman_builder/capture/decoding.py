@@ -177,6 +177,13 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
         encoder = SampleEncoder(names, bindings, foxglove_hz)
         lanes = _Lanes(urls, names, make_decoder, encoder.encode)
         next_status = 0.0
+        newest = 0  # host time of the newest packet decoded (ns)
+
+        def clock() -> int:
+            # liveness is judged at the time decoding has reached: while packets wait in the inbox
+            # (decoding behind), "now" would call a device silent that is only not decoded yet
+            return newest if newest and not inbox.empty() else now_ns()
+
         while True:
             try:
                 msg = inbox.get(timeout=STATUS_EVERY_S)
@@ -184,7 +191,7 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
                 msg = None
             if msg is not None and msg[0] == "finish":
                 msgs = lanes.finish()
-                status = lanes.status(now_ns())
+                status = lanes.status(newest or now_ns())  # the take's end, not when decoding got there
                 counters = lanes.counters()
                 msgs += lanes.leftover()
                 for out in msgs:
@@ -193,8 +200,10 @@ def _work(urls: list[str], names: list[str], bindings: Mapping, foxglove_hz: flo
                 return
             if msg is not None:
                 outbox.put(lanes.feed(msg[1], msg[2]))
+                if msg[2]:
+                    newest = max(newest, msg[2][-1][0])
             if time.monotonic() >= next_status:
-                status = lanes.status(now_ns())
+                status = lanes.status(clock())
                 outbox.put(("status", lanes.counters(), status))
                 next_status = time.monotonic() + STATUS_EVERY_S
     except BaseException:  # noqa: BLE001 - report any failure to the recorder, which stops cleanly

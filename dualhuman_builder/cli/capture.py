@@ -124,6 +124,13 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
     from dualhuman_builder.errors import DualhumanError
 
     plan = plan_capture(rig_file, sources, actors)
+    if rig_file is not None and not quiet:
+        from rich.markup import escape
+
+        from dualhuman_builder.rig import load_rig
+
+        for w in load_rig(rig_file).warnings():  # what `rig check` warns about: strangers' packets let in
+            err_console.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, soft_wrap=True)
     if out is None:
         if workspace is None:
             raise click.UsageError("say where the take goes: --workspace WS or --out TAKE.mcap")

@@ -192,3 +192,24 @@ def test_a_sample_the_writer_cannot_encode_stops_that_source_only():
     assert counters[0]["decoding_failed"] == 1 and counters[0]["undecoded_packets"] == 1
     assert counters[1]["samples"] == 3
     assert [m[2] for m in lanes.finish()] == [[], []] and lanes.leftover() == []
+
+
+def test_a_decoding_process_behind_the_packets_calls_no_device_silent():
+    """Packets queued faster than they are decoded (host times 3 s in the past when decoded):
+    liveness is judged at the time decoding has reached, so no ``stale`` event is invented."""
+    s = len(MVN_SEGMENTS)
+    q, p = np.tile([0.0, 0.0, 0.0, 1.0], (s, 1)), np.zeros((s, 3))
+    t0 = time.monotonic_ns() - 3_000_000_000
+    dp = DecodeProcess(["mvn+udp://127.0.0.1:9763"], ["suit"], {}, 0.0)
+    try:
+        for k in range(120):  # 1 s of poses at 120 Hz, one message each: a backlog before the process is up
+            t = t0 + k * 8_333_333
+            frame = SuitFrame(0, k, k, t, 0, tuple(MVN_SEGMENTS), q, p)
+            dp.submit(0, [RawPacket(t, d) for d in encode_pose(frame)])
+        got = []
+        dp.finish(got.append, timeout=60.0)
+    finally:
+        dp.close()
+    assert dp.counters[0]["samples"] == 120
+    kinds = [e.kind for m in got for e in m[3]]
+    assert "stale" not in kinds, kinds

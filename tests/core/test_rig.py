@@ -97,3 +97,12 @@ def test_rig_check_prints_the_warnings(tmp_path):
     assert "add serials=LHR-A0000001,LHR-A0000002," in warnings[1]
     r = CliRunner().invoke(main, ["rig", "check", str(RIGS_DIR / "studio.toml")])
     assert r.exit_code == 0 and "warning" not in r.output
+
+
+def test_capture_with_a_rig_prints_its_warnings_first(tmp_path):
+    path = _rig(tmp_path, lambda t: t.replace("?allow=192.168.10.11", "")
+                .replace("url = \"xbus:///dev/ttyUSB0?baud=921600\"", "url = \"xbus:///nonexistent/ttyUSB9\""))  # fmt: skip
+    r = CliRunner().invoke(main, ["capture", "--rig", str(path), "--take", "T", "--out", str(tmp_path / "t.mcap"),
+                                  "--duration", "0.2"])  # fmt: skip
+    assert "warning: source 'suits' listens on every interface" in r.stderr
+    assert r.exit_code != 0  # the rig's serial port does not exist here
