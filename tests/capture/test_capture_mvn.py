@@ -5,6 +5,7 @@ sender allow-list)."""
 
 from __future__ import annotations
 
+import functools
 import math
 import socket
 import struct
@@ -13,10 +14,13 @@ from collections import Counter, defaultdict
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
-from dualhuman_builder.capture.mvn_udp import WINDOW, MvnDecoder, MvnUdpSource
+from dualhuman_builder.capture.mvn_udp import (CONFIRM, JUMP_GAP, MAX_CANDIDATES, MAX_PENDING, MAX_PENDING_BYTES,
+                                              SEEN_WINDOW, WINDOW, MvnDecoder, MvnUdpSource)  # fmt: skip
 from dualhuman_builder.capture.samples import (AngularSegmentKinematics, CenterOfMass, JointAngles,
                                                LinearSegmentKinematics, SuitFrame, SuitMeta, SuitScale,
                                                SuitTimeCode)  # fmt: skip
@@ -637,8 +641,9 @@ def test_allow_list_rejects_another_sender_and_characters_filter(suits):
     assert stats["other_character"] == 8 and stats["packets"] == 20
     frames = _frames(out)
     assert list(frames) == [1] and [f.sample_counter for f in frames[1]] == list(range(6))
-    kinds = [(e.kind, e.entity) for e in src.decoder.pop_events()]
-    assert kinds == [("rejected-sender", "mvn"), ("other-character", "mvn")]
+    # the transport's event is the source's, the decoder's its own
+    assert [(e.kind, e.entity) for e in src.pop_events()] == [("rejected-sender", "mvn")]
+    assert [(e.kind, e.entity) for e in src.decoder.pop_events()] == [("other-character", "mvn")]
 
 
 def test_url_parameters():
@@ -657,3 +662,271 @@ def test_url_parameters():
         assert src.read(0.01) == []
     finally:
         src.close()
+
+
+# ------------------------------------------------------------------------------------ hostile streams
+_Q23, _P23 = np.tile([0.0, 0.0, 0.0, 1.0], (23, 1)), np.zeros((23, 3))
+_PROP = MVN_SEGMENTS + ("Prop1",)
+
+
+@functools.lru_cache(maxsize=16)
+def _pose_template(char: int, names: tuple, max_datagram: int) -> tuple[bytes, ...]:
+    n = len(names)
+    return tuple(encode_pose(SuitFrame(char, 0, 0, 0, 0, names, np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)),
+                                       np.full((n, 3), 0.25)), max_datagram=max_datagram))  # fmt: skip
+
+
+def _pose_dgrams(counter: int, *, tc: int | None = None, char: int = 0, names=MVN_SEGMENTS, max_datagram=1500):
+    """Type-02 datagrams of one pose (counter and time code wrap to u32; time code 4 ms a counter)."""
+    out = []
+    for d in _pose_template(char, tuple(names), max_datagram):
+        d = bytearray(d)
+        struct.pack_into(">I", d, 6, counter % (1 << 32))
+        struct.pack_into(">I", d, 12, (4 * counter if tc is None else tc) % (1 << 32))
+        out.append(bytes(d))
+    return out
+
+
+def _feed_all(dec, datagrams, t0=0, step=1000):
+    """Feed datagrams at host times ``t0 + k * step`` ns; returns the samples."""
+    return [s for k, d in enumerate(datagrams) for s in dec.feed(RawPacket(t0 + k * step, d))]
+
+
+def _no_guard_needed(dec):
+    """The decoder's own code raised nothing (the Decoder base may count what would have escaped)."""
+    assert dec.counters.get("decoder_errors", 0) == 0
+
+
+def test_pending_pieces_are_bounded_at_every_piece():
+    dec = MvnDecoder()
+    big = b"\0" * 60_000  # not a whole pose: it stays pending
+    flood = [_datagram(12, big, items=1, counter=c, dgram=i, char=c) for c in range(2) for i in range(100)]
+    for k, d in enumerate(flood):
+        dec.feed(RawPacket(k, d))
+        assert dec._pending_bytes <= MAX_PENDING_BYTES and len(dec._pending) <= MAX_PENDING
+        assert dec._pending_bytes == sum(p.nbytes for p in dec._pending.values())
+    assert dec.counters["evicted"] >= 2  # each message alone outgrew the bound and was dropped
+    # a real split message still goes through afterwards
+    (got,) = _feed_all(dec, _pose_dgrams(7, max_datagram=24 + 32 * 8), t0=10**6)
+    assert got.sample_counter == 7 and len(got.segment_names) == 23
+    dec.finish()
+    assert dec._pending_bytes == 0 and not dec._pending
+    # what the Decoder guard calls after a fault: the waiting pieces go, counted
+    evicted = dec.counters["evicted"]
+    dec.feed(RawPacket(2 * 10**6, flood[0]))
+    dec.recover()
+    assert not dec._pending and dec._pending_bytes == 0 and dec.counters["evicted"] == evicted + 1
+    _no_guard_needed(dec)
+
+
+def test_one_stray_counter_neither_adds_loss_nor_moves_the_stream():
+    dec = MvnDecoder()
+    stream = [_pose_dgrams(c)[0] for c in range(100)]
+    stream.insert(50, _pose_dgrams(100_000)[0])  # one datagram of another sender using the character ID
+    out = _feed_all(dec, stream)
+    assert [f.sample_counter for f in out] == list(range(100))
+    c = dec.counters
+    assert (c["lost"], c["counter_resets"], c["out_of_order"], c["out_of_sequence"]) == (0, 0, 0, 1)
+    assert dec.characters[0]["out_of_sequence"] == 1 and dec.pop_events() == []
+    _no_guard_needed(dec)
+
+
+def test_counters_alternating_between_far_values_give_no_event_flood():
+    dec = MvnDecoder()
+    real = [_pose_dgrams(1000 + k)[0] for k in range(300)]
+    stray = [_pose_dgrams(c)[0] for c in (5, 3_000_000_000, 77_777, 2_000_000_000)]
+    stream = [d for k, r in enumerate(real) for d in (r, stray[k % 4])]
+    out = _feed_all(dec, stream)
+    assert [f.sample_counter for f in out] == [1000 + k for k in range(300)] and dec.finish() == []
+    c = dec.counters
+    assert (c["lost"], c["counter_resets"], c["out_of_sequence"], c["duplicate"]) == (0, 0, 300, 0)
+    assert dec.pop_events() == []
+    # bursts that do move the stream back and forth: every move counted, events at most one a second
+    dec = MvnDecoder()
+    a, b = [_pose_dgrams(k)[0] for k in range(400)], [_pose_dgrams(10**6 + k, tc=4 * k)[0] for k in range(400)]
+    stream = [d for k in range(0, 400, 8) for d in a[k:k + 8] + b[k:k + 8]]
+    out = _feed_all(dec, stream, step=1_000_000)  # 0.8 s of host time
+    assert len(out) == 800 and dec.counters["counter_resets"] == 99 and dec.counters["lost"] == 0
+    events = dec.pop_events()
+    assert [e.kind for e in events] == ["counter-reset"]
+    _no_guard_needed(dec)
+
+
+def test_confirmed_jumps_restart_or_outage():
+    # MVN restarts its counter: the new stream is taken once CONFIRM poses follow each other
+    dec = MvnDecoder()
+    out = _feed_all(dec, [_pose_dgrams(5000 + k)[0] for k in range(20)] + [_pose_dgrams(k)[0] for k in range(20)])
+    assert [f.sample_counter % (1 << 32) for f in out] == [5000 + k for k in range(20)] + list(range(20))
+    assert (dec.counters["counter_resets"], dec.counters["lost"], dec.counters["out_of_sequence"]) == (1, 0, 0)
+    (ev,) = dec.pop_events()
+    assert ev.kind == "counter-reset" and "went back by 5019" in ev.message
+    # an outage of 500 samples (the time code went on with the counter): loss, no reset
+    dec = MvnDecoder()
+    out = _feed_all(dec, [_pose_dgrams(k)[0] for k in range(20)] + [_pose_dgrams(520 + k)[0] for k in range(20)])
+    assert len(out) == 40 and dec.counters["lost"] == 500 and dec.counters["counter_resets"] == 0
+    assert dec.pop_events() == []
+    # a forward jump the time code cannot account for: a restart, not loss
+    dec = MvnDecoder()
+    jump = [_pose_dgrams(600_000 + k, tc=4 * (20 + k))[0] for k in range(20)]
+    out = _feed_all(dec, [_pose_dgrams(k)[0] for k in range(20)] + jump)
+    assert len(out) == 40 and dec.counters["lost"] == 0 and dec.counters["counter_resets"] == 1
+    # a stream that ends while held: counted, not yielded
+    dec = MvnDecoder()
+    tail = [_pose_dgrams(9000 + k)[0] for k in range(CONFIRM - 1)]
+    out = _feed_all(dec, [_pose_dgrams(k)[0] for k in range(20)] + tail)
+    assert len(out) == 20 and dec.finish() == [] and dec.counters["out_of_sequence"] == CONFIRM - 1
+
+
+def test_segment_count_change_is_clean_and_a_stray_layout_flips_nothing():
+    dec = MvnDecoder()
+    stream = [_pose_dgrams(k)[0] for k in range(30)]
+    stream[10:10] = _pose_dgrams(10, names=_PROP)  # a stray 24-segment pose with an in-sequence counter
+    for k in range(15, 25, 2):  # and more of them between the real ones
+        stream.insert(k + 1, _pose_dgrams(k, names=_PROP)[0])
+    stream += [_pose_dgrams(30 + k, names=_PROP)[0] for k in range(30)]  # a prop added for real
+    out = _feed_all(dec, stream)
+    assert [f.sample_counter for f in out] == list(range(60))
+    assert [len(f.segment_names) for f in out] == [23] * 30 + [24] * 30
+    assert all(f.segment_names == _PROP and f.positions.shape == (24, 3) for f in out[30:])
+    (ev,) = dec.pop_events()
+    assert ev.kind == "segment-count-changed" and "now sends 24 segments (1 props" in ev.message
+    c = dec.counters
+    assert (c["segment_count_changes"], c["out_of_sequence"], c["lost"], c["duplicate"]) == (1, 6, 0, 0)
+    assert dec.characters[0]["segments"] == 24
+    _no_guard_needed(dec)
+
+
+# ------------------------------------------------------------------------------------ properties
+_TYPES = (2, 2, 2, 12, 13, 20, 21, 22, 24, 25, 1, 23, 99)
+
+
+@st.composite
+def _mvn_datagrams(draw):
+    """A datagram that is arbitrary bytes, or an MXTP header over arbitrary (or well-sized) items."""
+    if draw(st.booleans()):
+        return draw(st.binary(max_size=120))
+    mtype = draw(st.sampled_from(_TYPES))
+    items = draw(st.integers(0, 4))
+    size = ITEM_SIZES.get(mtype, 0) * items
+    payload = draw(st.binary(min_size=size, max_size=size)) if size and draw(st.booleans()) else \
+        draw(st.binary(max_size=200))  # fmt: skip
+    dgram = draw(st.sampled_from([0x80, 0x80, 0, 1, 2, 0x81, 0x82, 0x7F]) | st.integers(0, 255))
+    return _datagram(mtype, payload, items=items, counter=draw(st.integers(0, 40) | st.integers(0, 2**32 - 1)),
+                     dgram=dgram, tc=draw(st.integers(0, 2**32 - 1)), char=draw(st.integers(0, 2)),
+                     props=draw(st.integers(0, 2)), fingers=draw(st.sampled_from([0, 0, 40])),
+                     size=None if draw(st.integers(0, 9)) else draw(st.integers(0, 0xFFFF)))  # fmt: skip
+
+
+def _check_bounded(dec, out, fed):
+    """Never raised, every datagram and sample counted, state and events bounded."""
+    _no_guard_needed(dec)
+    c = dec.counters
+    assert c["packets"] == len(fed) and c["bytes"] == sum(map(len, fed))
+    assert c["samples"] == len(out) and c["frames"] == sum(isinstance(s, SuitFrame) for s in out)
+    assert len({(f.character, f.sample_counter) for f in out if isinstance(f, SuitFrame)}) == c["frames"]
+    assert 0 <= dec._pending_bytes <= MAX_PENDING_BYTES and len(dec._pending) <= MAX_PENDING
+    assert dec._pending_bytes == sum(p.nbytes for p in dec._pending.values())
+    for st_ in dec._chars.values():
+        assert len(st_.held) <= MAX_CANDIDATES and all(len(h.items) < CONFIRM for h in st_.held)
+        assert len(st_.seen) <= 2 * SEEN_WINDOW + 1
+    # host times span under a second and under stale=: per character at most one event of each kind
+    # (one per unsupported type and per ignored character)
+    per_character = Counter((e.kind, e.entity) for e in dec.events if e.entity != "mvn")
+    assert all(n == 1 for n in per_character.values()) and len(per_character) <= 2 * len(dec._chars)
+    assert len(dec.events) - len(per_character) <= len(set(_TYPES)) + 256
+
+
+@given(st.lists(_mvn_datagrams(), max_size=60))
+def test_property_arbitrary_datagrams_never_raise_and_stay_bounded(datagrams):
+    dec = MvnDecoder(characters=[0, 1])
+    out = _feed_all(dec, datagrams)
+    _check_bounded(dec, out, datagrams)
+    out += dec.finish()
+    assert not dec._pending and all(not st_.held for st_ in dec._chars.values())
+    _check_bounded(dec, out, datagrams)
+
+
+@st.composite
+def _mutated_stream(draw):
+    """Two characters' poses and time codes (split or whole), then dropped, duplicated, moved and
+    byte-flipped datagrams."""
+    base = draw(st.integers(0, 2**32 - 1))
+    split = draw(st.sampled_from([1500, 24 + 32 * 8]))
+    n = draw(st.integers(1, 16))
+    grams = []
+    for k in range(n):
+        for char in (0, 1):
+            f = SuitFrame(char, (base + k) % 2**32, (4 * (base + k)) % 2**32, 0, 0, MVN_SEGMENTS, _Q23, _P23)
+            grams += encode_frame(f, max_datagram=split)
+    ops = draw(st.lists(st.tuples(st.sampled_from(["drop", "dup", "move", "flip"]), st.integers(0, 10**6),
+                                  st.integers(0, 10**6), st.integers(0, 255)), max_size=25))  # fmt: skip
+    for op, i, j, v in ops:
+        if not grams:
+            break
+        i %= len(grams)
+        if op == "drop":
+            del grams[i]
+        elif op == "dup":
+            grams.insert(j % (len(grams) + 1), grams[i])
+        elif op == "move":
+            grams.insert(j % len(grams), grams.pop(i))
+        else:
+            g = bytearray(grams[i])
+            g[j % len(g)] = v
+            grams[i] = bytes(g)
+    return grams
+
+
+@given(_mutated_stream())
+def test_property_mutated_streams_never_raise_nor_yield_twice(datagrams):
+    dec = MvnDecoder()
+    out = _feed_all(dec, datagrams)
+    out += dec.finish()
+    _check_bounded(dec, out, datagrams)
+
+
+@st.composite
+def _hostile_pose_stream(draw):
+    """One character's single-datagram poses from a u32 counter ``base``: drop bursts shorter than
+    JUMP_GAP, duplicates, adjacent swaps, and isolated stray poses with far-off counters."""
+    base = draw(st.integers(0, 2**32 - 1))
+    n = draw(st.integers(2, 120))
+    keep = [True] + draw(st.lists(st.booleans(), min_size=n - 1, max_size=n - 1))
+    run = 0
+    for k in range(n):
+        run = run + 1 if not keep[k] else 0
+        if run > JUMP_GAP - 4:
+            keep[k], run = True, 0
+    stream = [base + k for k in range(n) if keep[k]]
+    for i in draw(st.lists(st.integers(0, 10**6), max_size=10)):
+        if len(stream) > 1:
+            i %= len(stream) - 1
+            stream[i], stream[i + 1] = stream[i + 1], stream[i]
+    for i, d in draw(st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 8)), max_size=10)):
+        i %= len(stream)
+        stream.insert(min(i + d, len(stream)), stream[i])  # a copy arrives a little later
+    real = [(c, 4 * c) for c in stream]
+    strays = draw(st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 10**5), st.integers(0, 2**32 - 1)),
+                           max_size=8, unique_by=(lambda s: s[0] % len(real), lambda s: s[1])))  # fmt: skip
+    for pos, far, tc in sorted(strays, reverse=True):  # never first: the first pose heard sets the stream
+        real.insert(1 + pos % len(real), (base + 2048 + far * 4096, tc))  # far from the stream and each other
+    return base, keep, real, len(strays)
+
+
+@given(_hostile_pose_stream())
+def test_property_strays_duplicates_and_reordering_add_up(case):
+    base, keep, stream, n_strays = case
+    dec = MvnDecoder()
+    datagrams = [_pose_dgrams(c, tc=tc)[0] for c, tc in stream]
+    out = _feed_all(dec, datagrams)
+    out += dec.finish()
+    _check_bounded(dec, out, datagrams)
+    c = dec.counters
+    received = {k for k, kept in enumerate(keep) if kept}
+    got = [(f.sample_counter - base) % 2**32 for f in out]
+    assert sorted(got) == sorted(received)  # every real pose once, no stray
+    assert max(f.sample_counter for f in out) - min(f.sample_counter for f in out) == max(received) - min(received)
+    assert c["frames"] + c["duplicate"] + c["out_of_sequence"] == len(datagrams)
+    assert c["out_of_sequence"] == n_strays and c["counter_resets"] == 0
+    assert c["lost"] == max(received) - min(received) + 1 - len(received)
+    assert dec.events == []

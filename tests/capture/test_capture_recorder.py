@@ -1,5 +1,7 @@
 """The recorder and replay on real transports: simulated trackers on UDP loopback recorded into a
-take, read back bit for bit, re-decoded, put back on the wire; a full disk and kill -9 mid-take."""
+take, read back bit for bit, re-decoded, put back on the wire; a full disk and kill -9 mid-take;
+transport events in the take; one source lost, one source's decoding failing, the decoding
+process killed — the rest of the take goes on."""
 
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dualhuman_builder.capture.log.reader import check_take, repair_take
+from dualhuman_builder.capture.log.reader import check_take
+from dualhuman_builder.capture.log.repair import repair_take
 from dualhuman_builder.capture.recorder import Recorder
 from dualhuman_builder.capture.replay import (redecode, replay_packets, replay_samples, replay_to, same_sample,
                                               verify_replay)  # fmt: skip
@@ -27,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests" / "capture"))
 
 from test_capture_vive import twelve_trackers  # noqa: E402
+from test_capture_xbus import imu_samples  # noqa: E402
 
 
 def record_trackers(path: Path, *, faults=None, speed=20.0, duration_s=0.6, flush_s=0.2, decode="process"):
@@ -251,4 +255,228 @@ def test_cli_capture_into_a_workspace_then_replay_and_dump(tmp_path):
     rows = [json.loads(line) for line in r.output.splitlines()]
     assert len(rows) == report.sent and {row["type"] for row in rows} == {"TrackerSample"}
     r = runner.invoke(main, ["capture", "--source", "trk=vive+udp://127.0.0.1:1", "--take", "T9", "-w", str(ws_path)])
-    assert r.exit_code == 2 and "never overwritten" in r.output
+    assert r.exit_code == 2 and "already in the workspace" in r.output
+
+
+# ------------------------------------------------------------------ events and failures mid-take
+def take_events_and_stats(path: Path) -> tuple[list[dict], dict]:
+    """The ``events`` messages of a take file, and its final ``stats`` metadata (JSON decoded)."""
+    import json
+
+    from dualhuman_builder.capture.log.reader import TakeReader
+
+    r = TakeReader(path)
+    events = [json.loads(bytes(m.data)) for ch, m in r.messages() if ch.topic == "events"]
+    stats = {k: json.loads(v) for k, v in r.metadata.get("stats", {}).items()}
+    return events, stats
+
+
+def raw_counts(path: Path) -> dict[str, int]:
+    from collections import Counter
+
+    return dict(Counter(name for name, _ in replay_packets(path)))
+
+
+@pytest.mark.parametrize("decode", ["process", "inline"])
+def test_rejected_senders_and_kernel_drops_are_events_of_the_take(tmp_path, decode):
+    """A sender on 127.0.0.2 outside allow= and datagrams the kernel dropped (a tiny receive
+    buffer flooded before the take starts) are events in the take file and the result, with
+    decoding in its own process or inline."""
+    import socket
+
+    stray = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stray.bind(("127.0.0.2", 0))
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    src = open_source("vive+udp://127.0.0.1:0?allow=127.0.0.1&rcvbuf=2048")
+    data = [p.data for p in tracker_packets(twelve_trackers(duration_s=0.1), clock="host")]
+    try:
+        assert src.buffer_bytes == src.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        for d in data[:2]:
+            stray.sendto(d, ("127.0.0.1", src.port))
+        for d in data[:200]:  # far more than a few KiB hold: the kernel drops most
+            tx.sendto(d, ("127.0.0.1", src.port))
+        path = tmp_path / "E.mcap"
+        rec = Recorder(path, take="E", sources=[("trk", src)], decode=decode)
+        result = rec.run(duration=0.4)
+        rec.close()
+    finally:
+        stray.close()
+        tx.close()
+    assert result.ok, result.error
+    st = result.source_stats["trk"]
+    assert st["rejected_senders"] == 2 and st["kernel_drops"] > 0
+    kinds = [(e["source"], e["kind"]) for e in result.events]
+    assert ("trk", "rejected-sender") in kinds and ("trk", "kernel-drops") in kinds
+    events, _ = take_events_and_stats(path)
+    rejected = [e for e in events if e["kind"] == "rejected-sender"]
+    assert len(rejected) == 1 and "127.0.0.2" in rejected[0]["message"]
+    (drops,) = [e for e in events if e["kind"] == "kernel-drops"]
+    assert f"total {st['kernel_drops']}" in drops["message"] and "rcvbuf" in drops["message"]
+
+
+def test_rcvbuf_out_of_range_is_a_clear_error():
+    from dualhuman_builder.capture.sources import SourceError
+
+    for bad in ("0", "-5", str(1 << 40)):
+        with pytest.raises(SourceError, match="rcvbuf=.* out of range"):
+            open_source(f"vive+udp://127.0.0.1:0?rcvbuf={bad}")
+
+
+def test_a_lost_device_ends_its_source_and_the_others_record_on(tmp_path):
+    """An Xbus MTi on a pty whose other end closes mid-take (unplugged): that source ends with a
+    source-lost event and its data so far kept; the trackers record to the end."""
+    import threading
+
+    from dualhuman_builder.capture.wire.xbus import encode_mtdata2
+    from dualhuman_builder.sim.devices import PtyMaster
+
+    pty = PtyMaster()
+    xbus = open_source(f"xbus://{pty.slave_path}?config=0&device=prop")
+    trk = open_source("vive+udp://127.0.0.1:0")
+    stream = twelve_trackers(duration_s=0.5)
+    player = UdpPlayer(("127.0.0.1", trk.port), speed=1.0).add(tracker_packets(stream, clock="host"))
+    frames = [encode_mtdata2(s) for s in imu_samples(0.05)]
+    path = tmp_path / "L.mcap"
+    rec = Recorder(path, take="L", sources=[("trackers", trk), ("prop", xbus)])
+    for f in frames:
+        pty.write(f)
+    unplug = threading.Timer(0.2, pty.close)
+    player.start()
+    unplug.start()
+    done_at = []
+
+    def until():
+        if player.running:
+            return False
+        done_at.append(time.monotonic())
+        return time.monotonic() - done_at[0] > 0.3
+
+    result = rec.run(until=until, duration=20)
+    report = player.join()
+    unplug.join()
+    rec.close()
+    assert result.reason == "finished" and list(result.ended) == ["prop"]
+    assert "failed while reading" in result.ended["prop"]
+    assert "'prop'" in result.error and "was lost" in result.error and "reconnect" in result.fix
+    assert result.source_stats["trackers"]["samples"] == report.sent, "the trackers were recorded to the end"
+    assert result.source_stats["prop"]["samples"] == len(frames), "what came before the loss is kept"
+    assert raw_counts(path)["trackers"] == report.sent
+    events, stats = take_events_and_stats(path)
+    (lost,) = [e for e in events if e["kind"] == "source-lost"]
+    assert lost["source"] == "prop" and "1 other source(s) go on recording" in lost["message"]
+    assert list(stats["ended_sources"]) == ["prop"] and stats["reason"] == "finished"
+    assert check_take(path).ok
+
+
+def test_the_take_stops_when_every_source_is_lost(tmp_path):
+    from dualhuman_builder.sim.devices import PtyMaster
+
+    pty = PtyMaster()
+    xbus = open_source(f"xbus://{pty.slave_path}?config=0")
+    rec = Recorder(tmp_path / "A.mcap", take="A", sources=[("prop", xbus)], decode="inline")
+    pty.close()
+    result = rec.run(duration=30)
+    rec.close()
+    assert result.reason == "source-lost" and result.duration_s < 10
+    assert result.error.startswith("every source was lost") and list(result.ended) == ["prop"]
+
+
+def test_a_killed_decoding_process_leaves_raw_recording_going(tmp_path):
+    """The decoding process killed mid-take (as the OOM killer would): every raw packet is still
+    recorded to the end, the result and the take say decoding failed and how to recover."""
+    path = tmp_path / "K.mcap"
+    src = open_source("vive+udp://127.0.0.1:0")
+    stream = twelve_trackers(duration_s=0.8)
+    player = UdpPlayer(("127.0.0.1", src.port), speed=1.0).add(tracker_packets(stream, clock="host"))
+    rec = Recorder(path, take="K", sources=[("trackers", src)], flush_s=0.2)
+    statuses = []
+    player.start()
+    t0 = time.monotonic()
+    done_at = []
+
+    def until():
+        if rec._dproc.proc.is_alive() and time.monotonic() - t0 > 0.3:
+            os.kill(rec._dproc.proc.pid, signal.SIGKILL)
+        if player.running:
+            return False
+        done_at.append(time.monotonic())
+        return time.monotonic() - done_at[0] > 0.3
+
+    result = rec.run(until=until, on_status=statuses.append, duration=20)
+    report = player.join()
+    rec.close()
+    assert result.reason == "finished"
+    assert set(result.decode_failed) == {"*"} and "signal 9" in result.decode_failed["*"]
+    assert "decoding failed" in result.error and "log repair" in result.fix
+    assert raw_counts(path)["trackers"] == report.sent, "every raw packet was recorded after decoding stopped"
+    assert sum(result.samples_per_topic.values()) < report.sent
+    assert statuses[-1].sources[0].state == "raw only"
+    events, stats = take_events_and_stats(path)
+    (failed,) = [e for e in events if e["kind"] == "decoding-failed"]
+    assert failed["source"] == "*" and "log repair" in failed["message"]
+    assert stats["decode_failed"] == result.decode_failed and "log repair" in stats["fix"]
+    assert check_take(path).ok
+    fixed = tmp_path / "K-repaired.mcap"  # the recovery the fix names: every sample re-decoded from the raw packets
+    repair_take(path, fixed)
+    assert sum(1 for _ in replay_samples(fixed)) == report.sent
+
+
+class _Unwritable:
+    """What a broken decoder returns: not a sample the take can hold."""
+
+    host_time_ns = 0
+
+
+def _broken_source_class():
+    from dualhuman_builder.capture.vive_udp import ViveUdpDecoder, ViveUdpSource
+
+    class BrokenDecoder(ViveUdpDecoder):
+        def feed(self, packet):
+            return [_Unwritable()] if packet.data.startswith(b"BAD") else super().feed(packet)
+
+    class BrokenSource(ViveUdpSource):
+        @classmethod
+        def make_decoder(cls, url):
+            return BrokenDecoder()
+
+    return BrokenSource
+
+
+def test_one_source_failing_to_decode_leaves_the_others_decoded(tmp_path):
+    """Inline decoding: one source's samples cannot be written (its decoder returns what no take
+    holds); its decoding ends with an event, its raw packets are still recorded, the other source
+    is decoded to the end."""
+    import socket
+
+    good = open_source("vive+udp://127.0.0.1:0")
+    bad = _broken_source_class()("vive+udp://127.0.0.1:0")
+    stream = twelve_trackers(duration_s=0.3)
+    packets = tracker_packets(stream, clock="host")
+    path = tmp_path / "B.mcap"
+    rec = Recorder(path, take="B", sources=[("good", good), ("bad", bad)], decode="inline")
+    p1 = UdpPlayer(("127.0.0.1", good.port), speed=2.0).add(packets)
+    p2 = UdpPlayer(("127.0.0.1", bad.port), speed=2.0).add(packets)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    p1.start()
+    p2.start()
+    tx.sendto(b"BAD datagram", ("127.0.0.1", bad.port))
+    tx.close()
+    done_at = []
+
+    def until():
+        if p1.running or p2.running:
+            return False
+        done_at.append(time.monotonic())
+        return time.monotonic() - done_at[0] > 0.3
+
+    result = rec.run(until=until, duration=20)
+    sent = p1.join().sent
+    p2.join()
+    rec.close()
+    assert result.reason == "finished" and list(result.decode_failed) == ["bad"]
+    assert "decoding source 'bad' failed" in result.error and "log repair" in result.fix
+    assert result.source_stats["good"]["samples"] == sent
+    assert raw_counts(path) == {"good": sent, "bad": sent + 1}
+    events, stats = take_events_and_stats(path)
+    (failed,) = [e for e in events if e["kind"] == "decoding-failed"]
+    assert failed["source"] == "bad" and list(stats["decode_failed"]) == ["bad"]

@@ -14,10 +14,13 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from dualhuman_builder.capture.sources import RawPacket, SourceError, make_decoder, open_source
-from dualhuman_builder.capture.vive_udp import ViveUdpDecoder, ViveUdpSource
+from dualhuman_builder.capture.vive_udp import (CONFIRM, ESTABLISHED, MAX_TRACKERS, SEQUENCE_NS, ViveUdpDecoder,
+                                              ViveUdpSource)  # fmt: skip
 from dualhuman_builder.capture.vive_usb import ViveUsbDecoder, ViveUsbSource
 from dualhuman_builder.capture.samples import TrackerSample
 from dualhuman_builder.capture.wire.vive_hid import (ACC_SCALE, GYRO_SCALE, HidImuSample, ViveHidError,
@@ -187,15 +190,24 @@ def test_corrupted_datagrams_are_rejected_by_field_or_decoded_as_sent():
         outcomes[outcome] += 1
         if outcome == "sample":
             expected_samples.append(TRACKER_DATAGRAM.unpack(data))
+    # a flipped byte of the device time that moves it further than SEQUENCE_NS is held, not yielded
+    newest, in_sequence = {}, []
+    for fields in expected_samples:
+        serial, t = fields[4], fields[5]
+        if serial in newest and abs(t - newest[serial]) > SEQUENCE_NS:
+            continue
+        newest[serial] = max(newest.get(serial, t), t)
+        in_sequence.append(fields)
+    assert 0 < len(expected_samples) - len(in_sequence) <= stats["out_of_sequence"] + CONFIRM
     # header faults by where the byte was flipped, independent of the decoder
     assert stats["bad_magic"] == sum(n for o, n in offsets.items() if o < 4) > 0
     assert stats["bad_version"] == offsets[4] > 0
     for kind in ("bad_magic", "bad_version", "bad_field", "bad_pose"):
         assert stats.get(kind, 0) == outcomes[kind], kind
     assert outcomes["bad_pose"] > 0 and outcomes["bad_field"] > 0
-    assert stats["samples"] == len(samples) == outcomes["sample"] and stats["packets"] == len(log.sent)
+    assert stats["samples"] == len(samples) == len(in_sequence) and stats["packets"] == len(log.sent)
     # what was yielded is what the datagrams carried (the corrupted ones included), in order
-    for s, (_, _, flags, _, raw, t, *v) in zip(samples, expected_samples):
+    for s, (_, _, flags, _, raw, t, *v) in zip(samples, in_sequence):
         assert s.valid == (flags == 3)  # pose valid and device connected
         assert s.serial == raw.rstrip(b"\0").decode() and s.device_time_ns == t
         np.testing.assert_array_equal(np.concatenate([s.position, s.orientation, s.velocity, s.angular_velocity]), v)
@@ -257,7 +269,7 @@ def test_allow_rejects_a_sender_bound_to_another_address():
             for p in src.read(0.05):
                 samples += src.decoder.feed(p)
         stats = src.stats()
-        events = src.decoder.pop_events()
+        events = src.pop_events()  # the transport's events are the source's
     finally:
         src.close()
         stray.close()
@@ -299,17 +311,23 @@ def test_serials_filter_status_stale_resumed_and_flags():
     dec.feed(RawPacket(500 * ms, _pose("A", 500 * ms)))
     # B's gap is first seen by feed: stale (at when it went stale) then resumed
     dec2 = ViveUdpDecoder(stale_s=0.1)
-    dec2.feed(RawPacket(0, _pose("B", 0)))
+    for k in range(ESTABLISHED):  # events come for established trackers (serials= or ESTABLISHED samples)
+        dec2.feed(RawPacket(k * ms, _pose("B", k * ms)))
     dec2.feed(RawPacket(250 * ms, _pose("B", 250 * ms)))
-    assert [(e.kind, e.host_time_ns) for e in dec2.pop_events()] == [("stale", 100 * ms), ("resumed", 250 * ms)]
+    assert [(e.kind, e.host_time_ns) for e in dec2.pop_events()] == [("stale", 107 * ms), ("resumed", 250 * ms)]
     ev = dec.pop_events()
     assert [(e.kind, e.entity) for e in ev] == [("resumed", "vive/A")] and "0.491 s" in ev[0].message
     assert dec.status(501 * ms)["vive/A"]["live"] is True
-    # the device-connected flag
+    # the device-connected flag: every sample with it clear is invalid; a change held for CONFIRM
+    # samples is an event (a lone flipped flag is not)
     s = dec.feed(RawPacket(502 * ms, _pose("A", 502 * ms, connected=False)))
     assert s[0].valid is False and dec.counters["disconnected"] == 1
     dec.feed(RawPacket(503 * ms, _pose("A", 503 * ms)))
+    assert dec.pop_events() == []
+    for k in range(2 * CONFIRM):
+        dec.feed(RawPacket((504 + k) * ms, _pose("A", (504 + k) * ms, connected=k >= CONFIRM)))
     assert [e.kind for e in dec.pop_events()] == ["disconnected", "connected"]
+    assert dec.counters["disconnected"] == 1 + CONFIRM
 
 
 def test_vive_udp_url_parameters():
@@ -431,3 +449,161 @@ def test_usb_source_without_libusb_says_how_to_install_it():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.stdout.startswith("SourceError cannot open 'vive+usb://': pyusb finds no libusb-1.0 backend")
     assert "(fix: apt-get install libusb-1.0-0)" in r.stdout
+
+
+# ------------------------------------------------------------------------------------ hostile streams
+def _no_guard_needed(dec):
+    """The decoder's own code raised nothing (the Decoder base may count what would have escaped)."""
+    assert dec.counters.get("decoder_errors", 0) == 0
+
+
+def test_invented_serials_cannot_lock_real_trackers_out():
+    ms = 1_000_000
+    dec = ViveUdpDecoder()
+    invented = [RawPacket(k, _pose(f"FAKE-{k:05d}", k)) for k in range(3 * MAX_TRACKERS)]
+    assert len([s for p in invented for s in dec.feed(p)]) == 3 * MAX_TRACKERS  # unlisted serials are kept...
+    real = [s for k in range(20) for s in dec.feed(RawPacket(ms + k * 4 * ms, _pose("LHR-REAL", k * 4 * ms)))]
+    assert [s.device_time_ns for s in real] == [k * 4 * ms for k in range(20)]  # ...but make room for a live one
+    c = dec.counters
+    assert c["too_many_trackers"] == 0 and c["evicted_trackers"] == 2 * MAX_TRACKERS + 1
+    assert len(dec.trackers) == MAX_TRACKERS and "LHR-REAL" in dec.trackers
+    (full,) = dec.pop_events()
+    assert full.kind == "tracker-table-full" and full.entity == "vive" and "serials=" in full.message
+    # a table of established trackers that are all sending: a new serial is dropped, counted, no new event
+    dec = ViveUdpDecoder()
+    for k in range(ESTABLISHED):
+        for i in range(MAX_TRACKERS):
+            dec.feed(RawPacket(k * ms, _pose(f"T{i:03d}", k * ms)))
+    assert dec.feed(RawPacket(9 * ms, _pose("LATE", 9 * ms))) == []
+    assert dec.feed(RawPacket(10 * ms, _pose("LATE", 10 * ms))) == []
+    assert dec.counters["too_many_trackers"] == 2 and [e.kind for e in dec.pop_events()] == ["tracker-table-full"]
+    # once one falls silent for longer than stale_s, the newcomer takes its place
+    for i in range(1, MAX_TRACKERS):
+        dec.feed(RawPacket(400 * ms, _pose(f"T{i:03d}", 400 * ms)))
+    (got,) = dec.feed(RawPacket(600 * ms, _pose("LATE", 600 * ms)))
+    assert got.serial == "LATE" and "T000" not in dec.trackers and dec.counters["evicted_trackers"] == 1
+    _no_guard_needed(dec)
+
+
+def test_a_stray_device_time_is_held_and_the_stream_stays_in_order():
+    ms = 1_000_000
+    dec = ViveUdpDecoder()
+    t0 = 10**10  # device ns
+    feed = [(k * 4 * ms, _pose("LHR-A", t0 + k * 4 * ms)) for k in range(40)]
+    feed.insert(20, (80 * ms, _pose("LHR-A", 10**15)))  # one datagram with a far-off device time
+    out = [s for t, d in feed for s in dec.feed(RawPacket(t, d))]
+    assert [s.device_time_ns for s in out] == [t0 + k * 4 * ms for k in range(40)]
+    c = dec.counters
+    assert (c["out_of_order"], c["out_of_sequence"], c["clock_resets"], c["duplicate"]) == (0, 1, 0, 0)
+    # the bridge restarts its clock: taken after CONFIRM samples, one event
+    back = [s for k in range(10) for s in dec.feed(RawPacket((200 + 4 * k) * ms, _pose("LHR-A", k * 4 * ms + 1)))]
+    assert len(back) == 10 and dec.counters["clock_resets"] == 1 and dec.counters["out_of_order"] == 0
+    assert [e.kind for e in dec.pop_events()] == ["clock-reset"]
+    # a tracker that pauses (device time goes on with the host's): no event, nothing lost
+    later = [s for k in range(10)
+             for s in dec.feed(RawPacket((1300 + 4 * k) * ms, _pose("LHR-A", (1100 + 4 * k) * ms)))]  # fmt: skip
+    assert len(later) == 10 and dec.counters["clock_resets"] == 1
+    assert [e.kind for e in dec.pop_events()] == ["stale", "resumed"]
+    _no_guard_needed(dec)
+
+
+def test_flags_flipping_every_datagram_give_no_event_flood():
+    ms = 1_000_000
+    dec = ViveUdpDecoder(serials=["LHR-A"])
+    out = [s for k in range(400) for s in dec.feed(RawPacket(k * ms, _pose("LHR-A", k * ms, connected=k % 2 == 0)))]
+    assert len(out) == 400 and sum(not s.valid for s in out) == 200 == dec.counters["disconnected"]
+    assert dec.pop_events() == []
+    # changes that hold for CONFIRM samples but come faster than one a second: events rate-limited
+    out = [s for k in range(400) for s in
+           dec.feed(RawPacket((400 + k) * ms, _pose("LHR-A", (400 + k) * ms, connected=(k // CONFIRM) % 2 == 1)))]
+    kinds = [e.kind for e in dec.pop_events()]
+    assert kinds == ["disconnected", "connected"]
+    _no_guard_needed(dec)
+
+
+# ------------------------------------------------------------------------------------ properties
+_REJECTED = ("truncated", "bad_length", "bad_magic", "bad_version", "bad_field", "bad_pose")
+
+
+@st.composite
+def _vive_datagrams(draw):
+    """Arbitrary bytes, or the datagram layout with arbitrary fields (few serials, any flags and values)."""
+    if draw(st.integers(0, 3)) == 0:
+        return draw(st.binary(max_size=140))
+    serial = draw(st.sampled_from([b"A", b"B", b"LHR-1", b"", b"A\0B", b"\xc3"]) | st.binary(min_size=1, max_size=32))
+    values = draw(st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=13, max_size=13))
+    if draw(st.booleans()):
+        values[3:7] = [0.0, 0.0, 0.0, 1.0]
+    return TRACKER_DATAGRAM.pack(draw(st.sampled_from([MAGIC, MAGIC, b"DHVX"])), draw(st.sampled_from([1, 1, 2])),
+                                 draw(st.sampled_from([3, 3, 1, 2, 0, 7])), draw(st.sampled_from([0, 0, 1])),
+                                 serial, draw(st.integers(0, 40) | st.integers(-(2**63), 2**63 - 1)),
+                                 *values[:7], *[float(np.float32(v)) if math.isfinite(v) and abs(v) < 1e38 else 0.0
+                                                for v in values[7:]])  # fmt: skip
+
+
+def _check_vive(dec, out, fed):
+    """Never raised; after finish every datagram is in exactly one counter; state and events bounded."""
+    _no_guard_needed(dec)
+    c = dec.counters
+    assert c["packets"] == len(fed) and c["bytes"] == sum(map(len, fed)) and c["samples"] == len(out)
+    assert c["packets"] == sum(c[k] for k in _REJECTED) + c["other_serial"] + c["too_many_trackers"] + \
+        c["duplicate"] + c["out_of_sequence"] + c["samples"]  # fmt: skip
+    assert len({(s.serial, s.device_time_ns) for s in out}) == len(out)  # never yielded twice
+    assert len(dec.trackers) <= MAX_TRACKERS and len(dec._ignored) <= MAX_TRACKERS
+    for tr in dec.trackers.values():
+        assert not tr.held and len(tr.recent) <= 64
+    # host times span under stale= and a second: at most one event of each kind per tracker
+    per_tracker = Counter((e.kind, e.entity) for e in dec.events)
+    assert all(n == 1 for n in per_tracker.values())
+    assert len(per_tracker) <= 3 * len(dec.trackers) + len(dec._ignored) + 1
+
+
+@given(st.lists(_vive_datagrams(), max_size=60), st.booleans())
+def test_property_arbitrary_datagrams_never_raise_and_add_up(datagrams, listed):
+    dec = ViveUdpDecoder(serials=["A", "LHR-1"] if listed else None)
+    out = [s for k, d in enumerate(datagrams) for s in dec.feed(RawPacket(k * 1000, d))]
+    out += dec.finish()
+    _check_vive(dec, out, datagrams)
+
+
+@st.composite
+def _hostile_tracker_stream(draw):
+    """Three trackers at 4 ms: dropped, duplicated (a little later), swapped and byte-flipped
+    datagrams, and isolated strays with far-off device times."""
+    n = draw(st.integers(1, 30))
+    t0 = draw(st.integers(0, 2**62))
+    stream = [(f"LHR-{i}", t0 + k * 4_000_000) for k in range(n) for i in range(3)]
+    for i in draw(st.lists(st.integers(0, 10**6), max_size=10)):
+        if stream:
+            del stream[i % len(stream)]
+    for i in draw(st.lists(st.integers(0, 10**6), max_size=10)):
+        if len(stream) > 1:
+            i %= len(stream) - 1
+            stream[i], stream[i + 1] = stream[i + 1], stream[i]
+    for i, d in draw(st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 8)), max_size=10)):
+        if stream:
+            i %= len(stream)
+            stream.insert(min(i + d, len(stream)), stream[i])
+    real = list(stream)
+    strays = draw(st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 2), st.integers(1, 10**6)), max_size=6,
+                           unique_by=(lambda s: s[0] % max(len(real), 1), lambda s: s[2])))  # fmt: skip
+    mixed = list(real)
+    for pos, i, far in sorted(strays, reverse=True):  # after the tracker's first sample: the first sets the stream
+        first = next((k for k, (s, _) in enumerate(mixed) if s == f"LHR-{i}"), None)
+        if first is not None:
+            mixed.insert(first + 1 + pos % (len(mixed) - first), (f"LHR-{i}", (t0 + far * 10**9 * 7) % 2**62))
+    return real, mixed
+
+
+@given(_hostile_tracker_stream())
+def test_property_strays_duplicates_and_reordering_add_up(case):
+    real, mixed = case
+    dec = ViveUdpDecoder()
+    datagrams = [_pose(s, t) for s, t in mixed]
+    out = [s for k, d in enumerate(datagrams) for s in dec.feed(RawPacket(k * 1000, d))]
+    out += dec.finish()
+    _check_vive(dec, out, datagrams)
+    c = dec.counters
+    assert sorted((s.serial, s.device_time_ns) for s in out) == sorted(set(real))  # every real pose once, no stray
+    assert c["duplicate"] == len(real) - len(set(real)) and c["out_of_sequence"] == len(mixed) - len(real)
+    assert c["clock_resets"] == 0 and dec.events == []
