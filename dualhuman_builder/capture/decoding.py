@@ -236,7 +236,10 @@ class DecodeProcess:
 
     def poll(self, timeout: float = 0.0) -> list[tuple]:
         """``("items", source, items, events)`` messages that came back (status and counters are
-        taken in as they arrive); raises RuntimeError if the process failed."""
+        taken in as they arrive); raises RuntimeError if the process failed — after handing back,
+        in an earlier call, what it decoded before failing."""
+        if self.error is not None:
+            raise RuntimeError(f"the decoding process failed:\n{self.error}")
         out = []
         deadline = time.monotonic() + timeout
         while True:
@@ -256,6 +259,8 @@ class DecodeProcess:
                     break
             elif kind == "error":
                 self.error = msg[1]
+                if out:  # what came before the failure is written first; the next call raises
+                    break
                 raise RuntimeError(f"the decoding process failed:\n{msg[1]}")
             if timeout and out:
                 break

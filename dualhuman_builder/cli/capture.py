@@ -171,11 +171,22 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
     for name, st in result.source_stats.items():
         shown = ", ".join(f"{k} {v}" for k, v in sorted(st.items()) if v and k not in ("bytes",))
         console.print(f"  {name}: {shown}", highlight=False)
-    for ev in result.events[:20]:
-        console.print(f"  [yellow]{ev['source']} {ev['entity']}: {ev['kind']}[/] {ev['message']}", highlight=False)
+    from rich.markup import escape
+
+    from dualhuman_builder.workspace.workspace import printable
+
+    # every event that says data was lost or a source ended; of the rest, the first 20
+    vital = ("source-lost", "decoding-failed", "kernel-drops", "decoder-error")
+    shown_events = [ev for i, ev in enumerate(result.events) if i < 20 or ev["kind"] in vital]
+    for ev in shown_events:
+        head = printable(f"{ev['source']} {ev['entity']}: {ev['kind']}")
+        console.print(f"  [yellow]{escape(head)}[/] {escape(printable(ev['message']))}", highlight=False)
+    if len(shown_events) < len(result.events):
+        console.print(f"  ... {len(result.events) - len(shown_events)} more events in the take "
+                      f"(`dualhuman log dump {result.path} --topic events`)", highlight=False)  # fmt: skip
     if result.error:
-        print_error(err_console, DualhumanError(result.error, fix="the take is kept up to the failure; "
-                                                f"check it with `dualhuman log check {result.path}`"))
+        print_error(err_console, DualhumanError(result.error, fix=result.fix or "the take is kept up to the failure; "
+                                                f"check it with `dualhuman log check {result.path}`"))  # fmt: skip
         sys.exit(1)
 
 

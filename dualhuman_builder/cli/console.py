@@ -220,7 +220,8 @@ def body_info_tables(info: dict[str, Any], bones: bool, mapping: bool, regions: 
 
 def live_status_table(status) -> Table:
     """The recorder's live view (:class:`~dualhuman_builder.capture.recorder.LiveStatus`): per
-    source rate, loss, errors and last-sample age; per actor which suit and trackers are live."""
+    source rate, loss, errors, last-sample age and its state where it is not recording (``lost``,
+    ``raw only``); per actor which suit and trackers are live."""
     table = Table(title=f"take {escape(status.take)} — {status.elapsed_s:6.1f} s, {status.messages} messages",
                   title_justify="left")  # fmt: skip
     for col, just in (("source", "left"), ("kind", "left"), ("packets/s", "right"), ("samples/s", "right"),
@@ -232,7 +233,8 @@ def live_status_table(status) -> Table:
             age = f"[red]{age}[/]"
         loss = f"[red]{s.loss}[/]" if s.loss else "0"
         errors = f"[yellow]{s.errors}[/]" if s.errors else "0"
-        table.add_row(escape(s.name), s.kind, f"{s.packet_rate:.0f}", f"{s.sample_rate:.0f}", loss, errors, age)
+        kind = s.kind if s.state == "recording" else f"{s.kind} [red]{s.state}[/]"  # lost, or raw only
+        table.add_row(escape(s.name), kind, f"{s.packet_rate:.0f}", f"{s.sample_rate:.0f}", loss, errors, age)
     if status.actors:
         table.add_section()
         for a in status.actors:
