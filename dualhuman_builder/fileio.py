@@ -33,7 +33,8 @@ from dualhuman_builder.errors import FormatError, FormatVersionError
 PARTIAL_SUFFIX = ".partial"
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """Make a folder's entries (files created, renamed or removed in it) durable; best effort."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError:
@@ -61,7 +62,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -109,7 +109,8 @@ import numpy as np
 from dualhuman_builder.capture.samples import (AngularSegmentKinematics, CenterOfMass, JointAngles,
                                                LinearSegmentKinematics, SuitFrame, SuitMeta, SuitScale,
                                                SuitTimeCode)  # fmt: skip
-from dualhuman_builder.capture.sources import Decoder, RawPacket, SourceError, number_param, parse_source_url
+from dualhuman_builder.capture.sources import (Decoder, RawPacket, SourceError, number_param, parse_source_url,
+                                               rate_limited)  # fmt: skip
 from dualhuman_builder.capture.udp import UdpSource
 from dualhuman_builder.capture.wire import mvn
 from dualhuman_builder.capture.wire.mvn import LAST_PIECE, MvnFormatError, MvnMessageType, unpack_header
@@ -549,14 +550,9 @@ class MvnDecoder(Decoder):
 
     def _event_limited(self, now: int, kind: str, st: _Character, message: str) -> None:
         """An event of ``kind`` for character ``st``, at most one per EVENT_INTERVAL_NS of host time."""
-        last, suppressed = st.quiet.get(kind, (None, 0))
-        if last is not None and now - last < EVENT_INTERVAL_NS:
-            st.quiet[kind] = (last, suppressed + 1)
-            return
-        if suppressed:
-            message += f" ({suppressed} more since the last such event, counted only)"
-        st.quiet[kind] = (now, 0)
-        self.event(now, kind, st.entity, message)
+        message = rate_limited(st.quiet, kind, now, EVENT_INTERVAL_NS, message)
+        if message is not None:
+            self.event(now, kind, st.entity, message)
 
     def _yield(self, st: _Character, sample, now: int) -> list:
         st.samples += 1

@@ -299,6 +299,19 @@ def _guard_status(status):
 Decoder.finish = _guard_finish(Decoder.finish)
 
 
+def rate_limited(quiet: dict, key, now_ns: int, interval_ns: int, message: str) -> str | None:
+    """``message`` if an event under ``key`` may be emitted at host time ``now_ns`` (none in the
+    last ``interval_ns``), with how many were held back since appended; else None, counted in
+    ``quiet`` (the caller's per-entity ``{key: (last_ns, suppressed)}``). For a decoder's own
+    per-entity limits, finer than :meth:`Decoder.event`'s coalescing."""
+    last, suppressed = quiet.get(key, (None, 0))
+    if last is not None and now_ns - last < interval_ns:
+        quiet[key] = (last, suppressed + 1)
+        return None
+    quiet[key] = (now_ns, 0)
+    return message + (f" ({suppressed} more since the last such event, counted only)" if suppressed else "")
+
+
 class Source(abc.ABC):
     """A device (or a simulated one) named by ``url``. Iterate for samples, or :meth:`read`
     raw packets and feed them to :attr:`decoder` yourself (what the recorder does).

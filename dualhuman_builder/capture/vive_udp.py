@@ -48,7 +48,8 @@ import dataclasses
 from collections import OrderedDict, deque
 
 from dualhuman_builder.capture.samples import TrackerSample
-from dualhuman_builder.capture.sources import Decoder, RawPacket, SourceError, number_param, parse_source_url
+from dualhuman_builder.capture.sources import (Decoder, RawPacket, SourceError, number_param, parse_source_url,
+                                               rate_limited)  # fmt: skip
 from dualhuman_builder.capture.udp import UdpSource
 from dualhuman_builder.capture.wire.vive_udp import (DEFAULT_PORT, ViveFormatError, datagram_connected,
                                                      decode_tracker)  # fmt: skip
@@ -266,14 +267,9 @@ class ViveUdpDecoder(Decoder):
         """An event of ``kind`` for an established tracker, at most one per EVENT_INTERVAL_NS of host time."""
         if not tr.established:
             return
-        last, suppressed = tr.quiet.get(kind, (None, 0))
-        if last is not None and now - last < EVENT_INTERVAL_NS:
-            tr.quiet[kind] = (last, suppressed + 1)
-            return
-        if suppressed:
-            message += f" ({suppressed} more since the last such event, counted only)"
-        tr.quiet[kind] = (now, 0)
-        self.event(now, kind, entity, message)
+        message = rate_limited(tr.quiet, kind, now, EVENT_INTERVAL_NS, message)
+        if message is not None:
+            self.event(now, kind, entity, message)
 
     def _take(self, serial: str, tr: _Tracker, sample: TrackerSample, connected: bool, host: int) -> list:
         """An in-sequence sample: duplicates, order, flags, liveness; the sample to yield, if any."""

@@ -170,7 +170,7 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
                   f"topics, {result.messages} messages -> {result.path}", highlight=False)  # fmt: skip
     for name, st in result.source_stats.items():
         shown = ", ".join(f"{k} {v}" for k, v in sorted(st.items()) if v and k not in ("bytes",))
-        console.print(f"  {name}: {shown}", highlight=False)
+        console.print(f"  {_safe(name)}: {_safe(shown)}", highlight=False)
     from rich.markup import escape
 
     from dualhuman_builder.workspace.workspace import printable
@@ -188,6 +188,15 @@ def capture(rig_file, sources, actors, take, duration, workspace, out, sim_speed
         print_error(err_console, DualhumanError(result.error, fix=result.fix or "the take is kept up to the failure; "
                                                 f"check it with `dualhuman log check {result.path}`"))  # fmt: skip
         sys.exit(1)
+
+
+def _safe(text) -> str:
+    """Text read from a take file, safe to print: control characters and rich markup escaped."""
+    from rich.markup import escape
+
+    from dualhuman_builder.workspace.workspace import printable
+
+    return escape(printable(str(text)))
 
 
 @main.group()
@@ -213,12 +222,12 @@ def log_check(take_file: Path, as_json: bool):
         dur = "" if rep.first_ns is None else f", {(rep.last_ns - rep.first_ns) / 1e9:.1f} s"
         console.print(f"{take_file}: {state}, {rep.messages} messages in {rep.chunks} chunks{dur}, "
                       f"{rep.size} bytes ({rep.lost_bytes} unreadable)", highlight=False)  # fmt: skip
-        for topic, n in sorted(rep.per_topic.items()):
-            console.print(f"  {topic}: {n}", highlight=False)
+        for topic, n in sorted(rep.per_topic.items()):  # names from the file: printed escaped
+            console.print(f"  {_safe(topic)}: {n}", highlight=False)
         for topic, n in sorted(rep.lost_messages.items()):
-            console.print(f"  [yellow]lost:[/] {topic}: {n} messages in damaged chunks", highlight=False)
+            console.print(f"  [yellow]lost:[/] {_safe(topic)}: {n} messages in damaged chunks", highlight=False)
         for p in rep.problems:
-            console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+            console.print(f"  [yellow]problem:[/] {_safe(p)}", highlight=False)
     sys.exit(0 if rep.ok else 1)
 
 
@@ -241,15 +250,15 @@ def log_repair(take_file: Path, out: Path | None):
     if rep.original:
         console.print(f"  original kept as {rep.original}", highlight=False)
     for topic, n in sorted(rep.lost_messages.items()):
-        console.print(f"  [yellow]lost:[/] {topic}: {n} messages", highlight=False)
+        console.print(f"  [yellow]lost:[/] {_safe(topic)}: {n} messages", highlight=False)
     for topic, n in sorted(rep.redecoded.items()):
-        console.print(f"  re-decoded: {topic}: {n} samples", highlight=False)
+        console.print(f"  re-decoded: {_safe(topic)}: {n} samples", highlight=False)
     for line in rep.recovered:
-        console.print(f"  recovered: {line}", highlight=False)
+        console.print(f"  recovered: {_safe(line)}", highlight=False)
     for p in rep.problems:
-        console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+        console.print(f"  [yellow]problem:[/] {_safe(p)}", highlight=False)
     for note in rep.notes:
-        console.print(f"  [yellow]note:[/] {note}", highlight=False)
+        console.print(f"  [yellow]note:[/] {_safe(note)}", highlight=False)
 
 
 @log.command("dump")
@@ -271,7 +280,7 @@ def log_dump(take_file: Path, jsonl: bool, raw: bool, topics: tuple[str, ...]):
         sys.stderr.close()
         return
     for p in problems:
-        err_console.print(f"[yellow]problem:[/] {p}", highlight=False)
+        err_console.print(f"[yellow]problem:[/] {_safe(p)}", highlight=False)
 
 
 @main.command()
@@ -303,7 +312,7 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
         console.print(f"sent {rep.packets} packets of {rep.recorded_s:.1f} s recorded in {rep.elapsed_s:.2f} s"
                       + "".join(f"\n  {u}: {n}" for u, n in rep.sent.items()), highlight=False)  # fmt: skip
         if rep.skipped_sources:
-            console.print(f"  not sent (no --to for their kind): {', '.join(rep.skipped_sources)}", highlight=False)
+            console.print(f"  not sent (no --to for their kind): {_safe(', '.join(rep.skipped_sources))}", highlight=False)
         return
     t = time.perf_counter()
     problems: list[str] = []
@@ -322,7 +331,7 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
                                                if not a]  # fmt: skip
             odd = f" ({c.odd} laid out otherwise" + (f"; segments not in every sample: {', '.join(some)})"
                                                       if some else ")")  # fmt: skip
-        console.print(f"  {topic}: {c.count} {c.sample_type}{odd}", highlight=False)
+        console.print(f"  {_safe(topic)}: {c.count} {_safe(c.sample_type)}{_safe(odd)}", highlight=False)
     if not verify:
         from dualhuman_builder.capture.log.reader import scan_take
 
@@ -330,13 +339,13 @@ def replay(take_file: Path, targets: tuple[str, ...], speed: float, verify: bool
             problems.append("the take has no index: the recording did not finish — `dualhuman log repair` "
                             "rebuilds it and writes the samples its raw bytes hold that were never written")  # fmt: skip
         for p in problems:
-            console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+            console.print(f"  [yellow]problem:[/] {_safe(p)}", highlight=False)
         return
     chk = verify_replay(take_file)
     for p in chk.problems:
-        console.print(f"  [yellow]problem:[/] {p}", highlight=False)
+        console.print(f"  [yellow]problem:[/] {_safe(p)}", highlight=False)
     if chk.mismatches:
-        console.print(f"[red]{chk.mismatches} of {chk.samples} samples differ[/]; first: {chk.first_mismatch}",
+        console.print(f"[red]{chk.mismatches} of {chk.samples} samples differ[/]; first: {_safe(chk.first_mismatch)}",
                       highlight=False)  # fmt: skip
     if chk.missing:
         console.print(f"[red]{chk.missing} samples decoded from the raw bytes are not in the take[/] (its decoded "

@@ -47,7 +47,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Mapping, Sequence
 
 from dualhuman_builder.errors import WorkspaceError
-from dualhuman_builder.fileio import sha256_file
+from dualhuman_builder.fileio import fsync_dir, sha256_file
 from dualhuman_builder.workspace.catalog import now_iso, transaction
 
 #: Hidden folders beside a stage's folder: ``.STAGE.staging-PID-TOKEN`` (a run's new files) and
@@ -263,19 +263,6 @@ def artifact_problems(ws, rec: Mapping[str, Any], verify: bool = False) -> list[
     return problems
 
 
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _sweep(final_dir: Path) -> None:
     """Delete the staging and replaced folders runs of this stage left beside ``final_dir`` (and
     hidden folders inside it): called only while holding the stage's run."""
@@ -389,8 +376,8 @@ def run_stage(ws, stage: str | Stage, compute: Callable[[StageOutput], Mapping[s
             artifacts[rel] = {"path": (final_dir / rel).relative_to(ws.root).as_posix(), "size": p.stat().st_size,
                               "sha256": sha256_file(p)}  # fmt: skip
         for d in sorted((p for p in staging.rglob("*") if p.is_dir()), reverse=True):
-            _fsync_dir(d)
-        _fsync_dir(staging)
+            fsync_dir(d)
+        fsync_dir(staging)
         publish = {"staging": staging.name, "old": f".{name}{OLD_PREFIX}{secrets.token_hex(4)}", "params_hash": h,
                    "params_json": params_json, "reads": reads, "artifacts": artifacts, "summary": summary,
                    "upstream": [[t, s, q] for t, s, q in deps], "inputs": upstream, "force": bool(force)}  # fmt: skip
@@ -458,7 +445,7 @@ def _switch(ws, final_dir: Path, publish: Mapping[str, Any]) -> bool:
             else:
                 os.rename(final_dir, old)
         os.rename(staging, final_dir)
-        _fsync_dir(final_dir.parent)
+        fsync_dir(final_dir.parent)
     return all((ws.root / a["path"]).is_file() and (ws.root / a["path"]).stat().st_size == a["size"]
                for a in publish["artifacts"].values())  # fmt: skip
 

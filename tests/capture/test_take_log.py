@@ -307,3 +307,28 @@ def test_cli_log_check_repair_dump(tmp_path):
     assert r.exit_code == 0 and "original kept" in r.output
     assert runner.invoke(main, ["log", "check", str(cut)]).exit_code == 0
     time.sleep(0)
+
+
+def test_names_read_from_a_take_are_printed_escaped(tmp_path):
+    """A take's topics come from the file: rich markup or terminal controls in one must neither crash
+    `log check` / `log repair` nor reach the terminal raw."""
+    from click.testing import CliRunner
+    from mcap.writer import Writer
+
+    from dualhuman_builder.cli import main
+
+    path = tmp_path / "hostile.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start("x", "x")
+        cid = w.register_channel("[/x]\x1b[2J[bold", "json", 0, {})
+        w.add_message(cid, 1, b"{}", 1)
+        w.finish()
+    size = path.stat().st_size
+    os.truncate(path, size - 40)  # the footer and part of the summary gone: a take cut off, which repair rebuilds
+    runner = CliRunner()
+    for args in (["log", "check", str(path)], ["log", "repair", str(path), "--out", str(tmp_path / "r.mcap")]):
+        r = runner.invoke(main, args)
+        assert r.exception is None or isinstance(r.exception, SystemExit), (args, r.output)
+        assert "\x1b[2J" not in r.output, (args, r.output)
+    assert "[/x]\\x1b[2J[bold: 1" in runner.invoke(main, ["log", "check", str(path)]).output
