@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from dualhuman_builder.cli.app import console, main
+from dualhuman_builder.cli.app import console, err_console, main
 
 
 @main.group()
@@ -202,6 +202,8 @@ def export_shards(out: Path, shard_dir: Path, split: str, max_mb: float):
 
 
 def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) -> None:
+    from rich.markup import escape
+
     from dualhuman_builder.export import convert
 
     try:
@@ -213,6 +215,8 @@ def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) 
     console.print(f"{layout}: {doc['sequences_converted']} sequence(s){per} ({c['train']} train, {c['test']} test {unit}), "
                   f"{len(doc['skipped'])} skipped, {len(doc['texts_from_labels'])} captioned from labels -> {dest}",
                   highlight=False, soft_wrap=True)  # fmt: skip
+    for note in doc.get("notes", []):  # e.g. split lists filled because the export has too few sequences
+        err_console.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
 
 
 _CONVERT_OPTIONS = [

@@ -25,11 +25,12 @@ Written under ``DEST``::
                                          frame), axes as InterHuman (X, Y, Z) = (x, -z, y) of ours;
                                          [0:66] our 22 joints, [66:186] the 40 hand joints placed at
                                          their wrist (we capture no fingers; InterHuman ships none
-                                         either, #15), [186:312] 21 local rotations in 6D (first two
-                                         matrix columns, positions-derived, no twist:
-                                         features.local_rotations), [312:492] identity hand rotations
-    features/p1/<id>.npy, features/p2/<id>.npy  (T30-1, 262) float32 interhuman_features (the folder
-                                         avoids the word person1: InterGen would load it as motions)
+                                         either, #15), [186:312] 21 local rotations in 6D (below),
+                                         [312:492] identity hand rotations
+    features/p1/<id>.npy, features/p2/<id>.npy  (T30-1, 262) float32 interhuman_features, with [132:258]
+                                         the raw file's rotations of frames 0..T30-2 (what InterGen's
+                                         process_motion_np passes through; the folder avoids the word
+                                         person1: InterGen would load it as motions)
     annots/<id>.txt                      the sequence's texts, one per line, at least three (fewer are
                                          repeated in turn)
     train.txt, val.txt, test.txt         what InterGen reads; split/{train,val,test}.txt the same
@@ -39,10 +40,38 @@ Written under ``DEST``::
                                          both persons (std < 1e-6 -> 1): copy over InterGen's
                                          data/global_{mean,std}.npy to normalise with ours
     conversion.json                      source export, settings, per sequence its split, frame count,
-                                         text source and ``transform`` {yaw0 (rad), translation (m)}:
-                                         world = R_y(yaw0) shared + translation (PairTransform), the
-                                         skipped sequences with their reasons ("complete": false
+                                         text source and ``transform`` {yaw0 (rad), translation (m),
+                                         raw_yaw (rad)}: world = R_y(yaw0) shared + translation
+                                         (PairTransform), the raw files' positions = R_y(raw_yaw)
+                                         shared; ``raw_yaw_turned`` lists the pairs with raw_yaw != 0;
+                                         the skipped sequences with their reasons ("complete": false
                                          until the conversion finishes)
+
+Rotations, slots ``[186:312]``: joint ``i + 1`` (i = 0..20) as 6D in InterHuman's layout, the first two
+matrix columns flattened by row, ``rot_mat[..., :2].reshape(6) = [r00, r01, r10, r11, r20, r21]``
+(:func:`rotations_6d_rows`, inverse :func:`rotations_from_6d_rows`). That is the layout InterGen's
+``swap_left_right_rot`` assumes: it negates slots 1, 2, 4 (``M R M``, ``M = diag(-1, 1, 1)``, an
+x-reflection) and swaps the left and right chains, so a mirrored sample holds valid rotations, and
+our mirror of the joints (x -> -x, left <-> right) gives exactly those rotations. What a slot means
+differs, and is approximated: InterHuman stores SMPL-H's pose rotations, each joint's rotation relative
+to its parent in the body model's T-pose rest frame, twist included; ours are
+:func:`~dualhuman_builder.export.features.local_rotations` recomputed from the joint positions: the
+smallest rotation ("swing") taking HumanML3D's rest direction of the bone ENDING at joint ``i + 1``
+onto the bone, relative to the parent bone's, in the root facing frame, rest arms down (not SMPL's
+T-pose), no twist (not observable from positions). InterGen feeds these dims to its model and its
+normaliser, so a model trained on InterHuman sees different values there; positions, velocities and
+contacts are exact.
+
+Facing -Z: InterGen turns each person to face +Z with ``qbetween(forward, +Z)`` in float32, which is
+NaN when that hip facing is exactly -Z (every face-to-face pair written in person 1's frame).
+InterGen canonicalises at the first frame of a sample (frame 0, or a random frame for motions longer
+than 300 frames), so a pair in which some frame's hip facing lies within
+:data:`INTERGEN_MIN_FROM_MINUS_Z` of -Z has its raw positions turned by a small multiple of
+:data:`INTERGEN_YAW_NUDGE` (0.11 degrees) about the vertical through the origin, the one leaving the
+fewest frames near -Z (none, unless a person turns through -Z while moving): one rigid turn of both
+persons, so no relative geometry changes, and InterGen's own canonicalisation removes it again (person
+2 lands where :func:`to_interhuman`'s own features put it, to float32 precision).
+The local rotations do not depend on it; ``raw_yaw`` records it and :func:`read_interhuman` undoes it.
 
 HumanML3D (:func:`to_humanml3d`, ``dualhuman export humanml3d OUT DEST``)
 --------------------------------------------------------------------------
@@ -76,7 +105,13 @@ Both converters
 
 ``split`` picks the export split to convert (``train``, ``test``) or ``all``; the lists keep the
 export's split of every converted sequence. The export has no validation split, so ``val.txt`` repeats
-``test.txt`` (code that validates runs; do not select a model on it and report test numbers).
+``test.txt`` (code that validates runs; do not select a model on it and report test numbers). No list
+is ever empty (InterGen's and the T2M loaders raise on an empty split): a list whose split has no
+converted sequence (a one-sequence export, ``split="train"``) lists every converted sequence instead;
+``conversion.json`` names those under ``filled_splits`` and says so in ``notes``. Figures on such a
+list measure the training data. No file holds NaN or inf: a value that is not finite in float32
+(joints so large that a velocity overflows) stops the conversion with a DualhumanError naming the
+file, hence the sequence, before it is written.
 Captions are put on one line (whitespace collapsed; ``#`` becomes a space in HumanML3D). A sequence
 without text gets ``"two people interact: <label>."`` per label when ``label_texts`` (counted as
 ``texts_from_labels``), else it is skipped; skipped sequences are listed with their reason. The
@@ -97,11 +132,11 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from dualhuman_builder import __version__
-from dualhuman_builder.errors import FormatError
+from dualhuman_builder.errors import DualhumanError, FormatError
 from dualhuman_builder.export.features import (
     HUMANML3D_DIM,
     HUMANML3D_FPS,
-    _to_6d,
+    _rotate_y,
     feature_stats,
     local_rotations,
     motion_features,
@@ -109,7 +144,8 @@ from dualhuman_builder.export.features import (
     resample_joints,
     root_facing,
 )
-from dualhuman_builder.export.interhuman import INTERHUMAN_FPS, PairTransform, interhuman_features
+from dualhuman_builder.export.interhuman import (HIP_JOINTS, INTERHUMAN_FPS, PairTransform, interhuman_features,
+                                                 rotations_6d_rows, rotations_from_6d_rows)  # fmt: skip
 from dualhuman_builder.export.files import MANIFEST, PERSONS, json_bytes, read_manifest, read_npz
 from dualhuman_builder.fileio import atomic_open
 
@@ -125,7 +161,14 @@ TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 HAND_JOINTS = {20: [*range(22, 37), *range(52, 57)], 21: [*range(37, 52), *range(57, 62)]}
 #: T2M loaders keep motions with ``T2M_MIN_ROWS <= rows < T2M_MAX_ROWS`` (HumanML3D).
 T2M_MIN_ROWS, T2M_MAX_ROWS = 40, 200
-_IDENTITY_6D = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+#: Slice of a 262-dim InterGen feature row holding the 21 rotations (``[186:312]`` of the raw row).
+INTERGEN_ROT_FEATURES = slice(132, 258)
+#: A hip facing closer than this to -Z (rad) at the frame InterGen canonicalises at makes its ``qbetween``
+#: (rotation from the facing onto +Z) degenerate; the raw files of such a pair are turned by a multiple
+#: of :data:`INTERGEN_YAW_NUDGE` about the vertical through the origin.
+INTERGEN_MIN_FROM_MINUS_Z = 1e-3
+INTERGEN_YAW_NUDGE = 2e-3
+_IDENTITY_6D = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])  # rot_mat[:, :2] of the identity, flattened by row
 _TOKEN_RE = re.compile(r"^[^\s/#]+/[^\s/#]+$")
 
 
@@ -232,8 +275,17 @@ def _prepare_dest(dest, layout: str, owned: Sequence[str]) -> Path:
 
 
 def _save(path: Path, arr: np.ndarray) -> None:
+    """Write ``arr`` as float32 ``.npy``; DualhumanError (nothing written) when a value is NaN or inf
+    once in float32 (the training code would silently learn from it). The file name names the motion."""
+    data = np.asarray(arr, dtype=np.float32)
+    bad = ~np.isfinite(data)
+    if bad.any():
+        raise DualhumanError(f"refusing to write {path.parent.name}/{path.name}: {int(bad.sum())} value(s) are NaN or "
+                             f"inf in float32 (first at index {tuple(int(i) for i in np.argwhere(bad)[0])})",
+                             path=path, fix="check that sequence's joints (`dualhuman export verify OUT`); leave it "
+                             "out of the export or fix its motion, then convert again")  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.save(path, np.asarray(arr, dtype=np.float32), allow_pickle=False)
+    np.save(path, data, allow_pickle=False)
 
 
 def _write_lines(path: Path, lines: Sequence[str]) -> None:
@@ -242,14 +294,27 @@ def _write_lines(path: Path, lines: Sequence[str]) -> None:
 
 
 def _split_lists(split_of: dict[str, str]) -> dict[str, list[str]]:
-    """train/val/test/all lists of names; val repeats test (the export has no validation split)."""
+    """train/val/test/all lists of names; val repeats test (the export has no validation split). A list
+    that would be empty gets every converted name: the loaders raise on an empty split (see
+    :func:`_filled_splits`)."""
     lists = {name: sorted(n for n, s in split_of.items() if s == name) for name in ("train", "test")}
+    lists = {name: names or sorted(split_of) for name, names in lists.items()}
     return {**lists, "val": lists["test"], "all": sorted(split_of)}
+
+
+def _filled_splits(split_of: dict[str, str]) -> list[str]:
+    """The lists of :func:`_split_lists` that hold every converted name because their split is empty."""
+    empty = [name for name in ("train", "test") if not any(s == name for s in split_of.values())]
+    return sorted(empty + (["val"] if "test" in empty else []))
 
 
 def _finish(dest: Path, layout: str, root: Path, manifest: dict, split: str, fps: float, split_of: dict,
             sequences: dict, skipped: dict, extra: dict) -> dict[str, Any]:  # fmt: skip
     n = {k: len(v) for k, v in _split_lists(split_of).items()}
+    filled = _filled_splits(split_of)
+    notes = [(f"{', '.join(f'{k}.txt' for k in filled)} would be empty (no converted sequence in that split) "
+              "and list every converted sequence instead, so that the loaders run; do not report figures on them")]
+    notes = notes if filled else []
     doc = {
         "format": CONVERT_FORMAT, "layout": layout, "complete": True, "toolkit_version": __version__,
         "source": {"export": str(root.resolve()), "format_version": manifest.get("format_version"),
@@ -258,6 +323,7 @@ def _finish(dest: Path, layout: str, root: Path, manifest: dict, split: str, fps
         "dest": str(dest), "split": split, "fps": fps, "sequences_converted": len(sequences),
         "counts": {"train": n["train"], "val": n["val"], "test": n["test"], "all": n["all"]},
         "texts_from_labels": sorted(s for s, d in sequences.items() if d["text_source"] == "labels"),
+        "filled_splits": filled, "notes": notes,
         **extra, "skipped": dict(sorted(skipped.items())), "sequences": dict(sorted(sequences.items())),
     }  # fmt: skip
     with atomic_open(dest / CONVERSION, "wb") as f:
@@ -269,15 +335,35 @@ def _finish(dest: Path, layout: str, root: Path, manifest: dict, split: str, fps
 _INTERGEN_PATH_WORDS = ("person1", "person2", "motions_processed", "npy")
 
 
-def _intergen_raw(c: np.ndarray) -> np.ndarray:
-    """InterHuman's raw ``(T, 492)`` float32 of canonical joints ``c (T, 22, 3)`` (Y-up, 30 fps)."""
+def _intergen_yaw_nudge(ca: np.ndarray, cb: np.ndarray) -> float:
+    """Yaw (rad) to turn the pair's raw files by so that the fewest frames have a hip facing within
+    :data:`INTERGEN_MIN_FROM_MINUS_Z` of -Z: 0 when none has, else the best of +-1, +-2
+    :data:`INTERGEN_YAW_NUDGE`. Every frame counts: InterGen canonicalises at the first frame of a random
+    300-frame window. Frames whose hips are vertically aligned (facing undefined) are not counted."""
+    yaws = []
+    for c in (ca, cb):
+        across = c[:, HIP_JOINTS[0]] - c[:, HIP_JOINTS[1]]
+        ok = np.hypot(across[:, 0], across[:, 2]) > 1e-6
+        yaws.append(np.arctan2(across[ok, 2], -across[ok, 0]))  # forward = up x across, yaw 0 = +Z
+    yaw = np.concatenate(yaws)
+
+    def near(nudge: float) -> int:
+        return int((np.abs(np.angle(np.exp(1j * (yaw + nudge - np.pi)))) < INTERGEN_MIN_FROM_MINUS_Z).sum())
+
+    candidates = [0.0] + [k * INTERGEN_YAW_NUDGE for k in (1, -1, 2, -2)]
+    return min(candidates, key=near)  # the first of the fewest: 0 when no frame is near -Z
+
+
+def _intergen_raw(c: np.ndarray, yaw: float = 0.0) -> np.ndarray:
+    """InterHuman's raw ``(T, 492)`` float32 of canonical joints ``c (T, 22, 3)`` (Y-up, 30 fps), the
+    positions turned by ``yaw`` rad about +Y (the local rotations do not change under a turn)."""
     T = len(c)
     pos = np.empty((T, 62, 3))
-    pos[:, :22] = c
+    pos[:, :22] = _rotate_y(c, yaw) if yaw else c
     for wrist, hand in HAND_JOINTS.items():
-        pos[:, hand] = c[:, wrist, None]
+        pos[:, hand] = pos[:, wrist, None]
     rot = np.tile(_IDENTITY_6D, (T, 51, 1))
-    rot[:, :21] = _to_6d(local_rotations(c, root_facing(c, INTERHUMAN_FPS)))
+    rot[:, :21] = rotations_6d_rows(local_rotations(c, root_facing(c, INTERHUMAN_FPS)))
     return np.concatenate([(pos @ TO_Z_UP.T).reshape(T, -1), rot.reshape(T, -1)], axis=1).astype(np.float32)
 
 
@@ -314,18 +400,26 @@ def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True
             if len(a30) < INTERGEN_MIN_FRAMES:
                 raise ValueError(f"{len(a30)} frames at 30 fps, InterGen needs at least {INTERGEN_MIN_FRAMES}")
             feats = interhuman_features(a30, b30, INTERHUMAN_FPS, target_fps=None)
-            raws = [_intergen_raw(feats.transform.to_canonical(j)) for j in (a30, b30)]
+            canon = [feats.transform.to_canonical(j) for j in (a30, b30)]
+            nudge = _intergen_yaw_nudge(*canon)
+            raws = [_intergen_raw(c, nudge) for c in canon]
         except ValueError as e:
             skipped[sid] = str(e)
             continue
-        for k, (raw, f) in enumerate(zip(raws, (feats.person1, feats.person2)), 1):
+        pair = []
+        for raw, f in zip(raws, (feats.person1, feats.person2)):
+            f = f.copy()  # InterGen passes the raw rotations of frames 0..T-2 through to its features
+            f[:, INTERGEN_ROT_FEATURES] = raw[:-1, 186:312]
+            pair.append(f)
+        for k, (raw, f) in enumerate(zip(raws, pair), 1):
             _save(dest / "motions_processed" / f"person{k}" / f"{sid}.npy", raw)
             _save(dest / "features" / f"p{k}" / f"{sid}.npy", f)
         _write_lines(dest / "annots" / f"{sid}.txt", [sentences[i % len(sentences)] for i in range(max(3, len(sentences)))])
         tr = feats.transform
         sequences[sid] = {"split": manifest["sequences"][sid].get("split"), "frames": len(a30), "text_source": source,
-                          "transform": {"yaw0": tr.yaw0, "translation": list(tr.translation)}}  # fmt: skip
-        feats_of[sid] = (feats.person1, feats.person2)
+                          "transform": {"yaw0": tr.yaw0, "translation": list(tr.translation),
+                                        "raw_yaw": nudge}}  # fmt: skip
+        feats_of[sid] = (pair[0], pair[1])
     if not sequences:
         raise ValueError(f"no sequence of {root} could be converted: {skipped}")
     split_of = {sid: d["split"] for sid, d in sequences.items()}
@@ -341,23 +435,26 @@ def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True
     _save(dest / "global_mean.npy", data.mean(axis=0))
     _save(dest / "global_std.npy", std)
     extra = {"stats_over": "train" if train else "all converted (no train sequence)",
-             "persons": {"person1": "a", "person2": "b"}}  # fmt: skip
+             "persons": {"person1": "a", "person2": "b"},
+             "raw_yaw_turned": sorted(s for s, d in sequences.items() if d["transform"]["raw_yaw"])}  # fmt: skip
     return _finish(dest, "interhuman", root, manifest, split, INTERHUMAN_FPS, split_of, sequences, skipped, extra)
 
 
 def read_interhuman(dest, seq_id: str) -> np.ndarray:
     """World joints ``(2, T30, 22, 3)`` float32 (metres, Y up; persons a, b) of ``seq_id`` in an
-    InterHuman conversion ``dest``: the raw files' positions mapped back with the saved transform."""
+    InterHuman conversion ``dest``: the raw files' positions turned back by the saved ``raw_yaw`` and
+    mapped to the world with the saved transform."""
     dest = Path(dest)
     try:
         tr = json.loads((dest / CONVERSION).read_text(encoding="utf-8"))["sequences"][seq_id]["transform"]
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{dest}: no transform of {seq_id!r} in {CONVERSION} ({e!r})") from None
     transform = PairTransform(float(tr["yaw0"]), tuple(float(v) for v in tr["translation"]))
+    raw_yaw = float(tr.get("raw_yaw", 0.0))
     out = []
     for k in (1, 2):
         raw = np.load(dest / "motions_processed" / f"person{k}" / f"{seq_id}.npy", allow_pickle=False)
-        out.append(transform.to_world(raw[:, :66].reshape(len(raw), 22, 3) @ TO_Z_UP))
+        out.append(transform.to_world(_rotate_y(raw[:, :66].reshape(len(raw), 22, 3) @ TO_Z_UP, -raw_yaw)))
     return np.stack(out).astype(np.float32)
 
 
@@ -373,6 +470,9 @@ def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
                  tokenize: Callable[[str], Sequence[str]] | None = None) -> dict[str, Any]:  # fmt: skip
     """Write the export in ``export_dir`` in HumanML3D's per-person layout under ``dest`` (module
     docstring). ``tokenize``: caption -> ``word/POS`` tokens (default :func:`humanml3d_tokens`).
+    The vectors are recomputed from the export's joints, so dims [67:193] follow HumanML3D's rotation
+    convention (:func:`~dualhuman_builder.export.features.humanml3d_rotations`) whatever the export's
+    format version: its ``recover_from_rot`` rebuilds the joints given each motion's own bone lengths.
     Returns the ``conversion.json`` document; ``outside_t2m_length`` names the motions the T2M loaders
     would skip (fewer than 40 or at least 200 rows). Errors as :func:`to_interhuman`; ValueError when
     ``tokenize`` returns a token that is not ``word/POS``."""
@@ -429,5 +529,5 @@ def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
     return _finish(dest, "humanml3d", root, manifest, split, HUMANML3D_FPS, split_of, sequences, skipped, extra)
 
 
-__all__ = ["to_interhuman", "to_humanml3d", "read_interhuman", "humanml3d_tokens", "CONVERSION",
-           "INTERHUMAN_RAW_DIM", "TO_Z_UP"]  # fmt: skip
+__all__ = ["to_interhuman", "to_humanml3d", "read_interhuman", "humanml3d_tokens", "rotations_6d_rows",
+           "rotations_from_6d_rows", "CONVERSION", "INTERHUMAN_RAW_DIM", "TO_Z_UP"]  # fmt: skip

@@ -28,8 +28,9 @@ frame, ``psi`` the canonical facing; velocities are per frame at the input ``fps
 * ``[3:4]``     root height above the floor at frame ``t``, m.
 * ``[4:67]``    ``R_y(-psi(t)) (p_j(t) - (p_0x(t), 0, p_0z(t)))`` for joints 1..21, m ("ric"; y
   stays the height above the floor).
-* ``[67:193]``  21 local joint rotations, 6D (first two columns of the matrix), see
-  :func:`local_rotations`.
+* ``[67:193]``  21 local joint rotations in HumanML3D's convention, 6D (first two columns of the
+  matrix), see :func:`humanml3d_rotations`: HumanML3D's ``recover_from_rot`` rebuilds the joints from
+  them, dims [0:4] and the bone lengths.
 * ``[193:259]`` ``R_y(-psi(t)) (p_j(t+1) - p_j(t))`` for all 22 joints, m/frame.
 * ``[259:263]`` foot contacts (joints 7, 10, 8, 11: left ankle, left foot, right ankle, right foot):
   1 where ``|p_j(t+1) - p_j(t)|^2 < (contact_speed / fps)^2`` (HumanML3D: 0.002 m^2 at 20 fps).
@@ -110,8 +111,9 @@ FEATURE_FIELDS: tuple[FeatureField, ...] = (
     FeatureField("ric_positions", 4, 67, (21, 3), "m",
                  "joints 1..21 minus the root's (x, 0, z), rotated into the root facing frame of t"),
     FeatureField("rotations_6d", 67, 193, (21, 6), "1",
-                 "local rotation of joints 1..21 (swing of each bone from its rest direction, relative to "
-                 "the parent bone; root = facing frame), first two matrix columns"),
+                 "local rotation of joints 1..21 as HumanML3D (swing of each bone from its rest direction in the "
+                 "canonical frame, relative to the previous bone of its HumanML3D chain; a chain's first bone, "
+                 "collars included, is R_y(psi) times its swing), first two matrix columns"),
     FeatureField("joint_velocities", 193, 259, (22, 3), "m/frame",
                  "displacement t -> t+1 of all 22 joints in the root facing frame of t"),
     FeatureField("foot_contacts", 259, 263, (4,), "0/1",
@@ -281,6 +283,41 @@ def local_rotations(joints, psi) -> np.ndarray:
     return np.swapaxes(glob[:, _PARENTS[1:]], -1, -2) @ glob[:, 1:]
 
 
+#: HumanML3D's kinematic chains (``t2m_kinematic_chain``): the arms start at spine3 (9).
+HUMANML3D_CHAINS = ((0, 2, 5, 8, 11), (0, 1, 4, 7, 10), (0, 3, 6, 9, 12, 15), (9, 14, 17, 19, 21), (9, 13, 16, 18, 20))
+#: Joints whose bone is the first of a HumanML3D chain: their rotation is taken relative to the root.
+CHAIN_FIRST = tuple(sorted(c[1] for c in HUMANML3D_CHAINS))
+
+
+def humanml3d_rotations(canonical, psi) -> np.ndarray:
+    """Local joint rotations ``(T, 21, 3, 3)`` of joints 1..21 in HumanML3D's convention.
+
+    ``canonical (T, 22, 3)``: joints in the canonical frame; ``psi (T,)``: the root facing yaw there
+    (radians, the one dims [0:1] integrate to). The bone ending at joint ``j`` has unit direction
+    ``d_j``; its global rotation ``G_j`` is the smallest rotation taking :data:`REST_DIRECTIONS` ``[j]``
+    onto ``d_j`` in the canonical frame (a half turn about a fixed perpendicular axis if exactly
+    opposite, where HumanML3D gives NaN). As HumanML3D's ``inverse_kinematics_np``, with root rotation
+    ``R_y(-psi)`` (facing -> +Z): the first bone of each chain in :data:`HUMANML3D_CHAINS` (hips,
+    spine1 and both collars) gets ``L_j = R_y(psi) G_j``, every other ``L_j = G_parent^T G_j``. So
+    ``recover_from_rot``'s forward kinematics ``R_y(-psi) L_a ... L_j`` equals ``G_j`` and rebuilds
+    the bone. Twist about a bone is not observable from positions and is always zero.
+    """
+    j = np.asarray(canonical, dtype=np.float64)
+    bone = j[:, 1:] - j[:, _PARENTS[1:]]
+    length = np.linalg.norm(bone, axis=-1, keepdims=True)
+    if (length < 1e-9).any():
+        t, b = np.argwhere(length[..., 0] < 1e-9)[0]
+        raise ValueError(f"joint {JOINT22_NAMES[b + 1]} coincides with its parent at frame {t}")
+    glob = _swing(REST_DIRECTIONS[1:], bone / length, _FLIP_AXIS[1:])  # (T, 21, 3, 3), joint j at j - 1
+    out = np.empty_like(glob)
+    for k in range(1, NUM_JOINTS):
+        if k in CHAIN_FIRST:
+            out[:, k - 1] = rot_y(psi) @ glob[:, k - 1]
+        else:
+            out[:, k - 1] = np.swapaxes(glob[:, _PARENTS[k] - 1], -1, -2) @ glob[:, k - 1]
+    return out
+
+
 def _to_6d(mats: np.ndarray) -> np.ndarray:
     return np.concatenate([mats[..., :, 0], mats[..., :, 1]], axis=-1)
 
@@ -309,7 +346,7 @@ def motion_features(joints, fps: float, facing_smoothing_s: float = FACING_SMOOT
     out[:, 3] = root[:-1, 1]
     rel = canon[:-1, 1:] - root[:-1, None] * np.array([1.0, 0.0, 1.0])
     out[:, FeatureLayout.RIC] = _rotate_y(rel, -psi[:-1, None]).reshape(n, -1)
-    out[:, FeatureLayout.ROTATIONS] = _to_6d(local_rotations(canon[:-1], psi[:-1])).reshape(n, -1)
+    out[:, FeatureLayout.ROTATIONS] = _to_6d(humanml3d_rotations(canon[:-1], psi[:-1])).reshape(n, -1)
     step = canon[1:] - canon[:-1]
     out[:, FeatureLayout.JOINT_VELOCITIES] = _rotate_y(step, -psi[:-1, None]).reshape(n, -1)
     sq = (step[:, list(FEET_LEFT + FEET_RIGHT)] ** 2).sum(-1)

@@ -26,7 +26,7 @@ from dualhuman_builder.fileio import atomic_open, sha256_file
 
 FORMAT = "dualhuman-export"
 #: Version of the layout; :func:`read_manifest` refuses exports of a newer one.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: Person keys in the files: ``a`` is actor 0 of the interaction, ``b`` actor 1.
 PERSONS = ("a", "b")
 #: A sequence id: a safe folder name and WebDataset key (no dots: keys end at the first dot).

@@ -4,10 +4,11 @@ Per person, ``T - 1`` rows at 30 fps (InterHuman's rate), in one shared canonica
 
 * ``[0:66]``    22 joint positions, m (HumanML3D joint order).
 * ``[66:132]``  22 joint displacements t -> t+1, m/frame.
-* ``[132:258]`` 21 local joint rotations (joints 1..21), 6D = first two matrix columns: the same
-  positions-derived rotations as the HumanML3D features' [67:193]
-  (:func:`dualhuman_builder.export.features.local_rotations`). InterHuman ships SMPL-X pose
-  rotations there; ours are recomputed from the joints, so they carry no bone twist.
+* ``[132:258]`` 21 local joint rotations (joints 1..21), 6D as InterHuman stores it (``rot_mat[..., :2]``
+  flattened by row: :func:`rotations_6d_rows`), each relative to its parent and derived from the
+  joint positions (:func:`dualhuman_builder.export.features.local_rotations`). InterHuman ships
+  SMPL-H pose rotations relative to a T-pose rest there; ours have an arms-down rest and no bone
+  twist (an approximation: InterGen's losses and mirroring use them, its joints come from [0:66]).
 * ``[258:262]`` foot contacts (left ankle, left foot, right ankle, right foot): squared displacement
   t -> t+1 below ``(contact_speed / fps)^2`` (InterGen: 0.001 m^2 at 30 fps) and height at t below
   0.12 m (ankles) / 0.05 m (feet).
@@ -35,7 +36,6 @@ from dualhuman_builder.export.features import (
     _check_features,
     _check_fps,
     _rotate_y,
-    _to_6d,
     check_joints,
     facing_yaw,
     local_rotations,
@@ -111,13 +111,30 @@ def canonicalize_pair(joints_a, joints_b) -> tuple[np.ndarray, np.ndarray, PairT
     return tr.to_canonical(a), tr.to_canonical(b), tr
 
 
+def rotations_6d_rows(mats: np.ndarray) -> np.ndarray:
+    """InterHuman's 6D of rotation matrices ``(..., 3, 3)``: ``mats[..., :2]`` flattened by row,
+    ``[r00, r01, r10, r11, r20, r21]`` (``(..., 6)``), the layout InterGen's mirroring negates at 1, 2, 4."""
+    m = np.asarray(mats)
+    return m[..., :2].reshape(m.shape[:-2] + (6,))
+
+
+def rotations_from_6d_rows(d6: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` of InterHuman 6D ``(..., 6)`` (inverse of :func:`rotations_6d_rows`;
+    the two columns are Gram-Schmidt orthonormalised, the third is their cross product)."""
+    cols = np.asarray(d6, dtype=np.float64).reshape(np.shape(d6)[:-1] + (3, 2))
+    x = cols[..., 0] / np.linalg.norm(cols[..., 0], axis=-1, keepdims=True)
+    y = cols[..., 1] - (x * cols[..., 1]).sum(-1, keepdims=True) * x
+    y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    return np.stack([x, y, np.cross(x, y)], axis=-1)
+
+
 def _person_features(c: np.ndarray, fps: float, contact_speed: float) -> np.ndarray:
     n = len(c) - 1
     out = np.zeros((n, INTERHUMAN_DIM))
     out[:, 0:66] = c[:-1].reshape(n, -1)
     step = c[1:] - c[:-1]
     out[:, 66:132] = step.reshape(n, -1)
-    out[:, 132:258] = _to_6d(local_rotations(c[:-1], root_facing(c, fps)[:-1])).reshape(n, -1)
+    out[:, 132:258] = rotations_6d_rows(local_rotations(c[:-1], root_facing(c, fps)[:-1])).reshape(n, -1)
     feet = list(FEET_LEFT + FEET_RIGHT)
     slow = (step[:, feet] ** 2).sum(-1) < (contact_speed / fps) ** 2
     low = c[:-1, feet, 1] < np.array(CONTACT_HEIGHTS * 2)

@@ -116,7 +116,7 @@ def _mtimes(folder):
 # ------------------------------------------------------------------------------------ layout
 def test_layout_manifest_schema_and_contents(exported, items, body_model):
     out, manifest, lines = exported
-    assert manifest["format_version"] == 1 and manifest["toolkit_version"] == __version__
+    assert manifest["format_version"] == 2 and manifest["toolkit_version"] == __version__
     assert manifest["body_model"]["name"] == "anny" and manifest["body_model"]["version"] == body_model.version
     assert manifest["body_model"]["num_vertices"] == 13718 and manifest["fps"] == FPS
     assert manifest["axes"] == "Y-up, metres" and manifest["units"]["length"] == "m"

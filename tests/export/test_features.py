@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from dualhuman_builder.body.joints import JOINT22_NAMES, JOINT22_PARENTS
 from dualhuman_builder.export.features import (
+    CHAIN_FIRST,
     FEATURE_DIM,
     FEATURE_SCHEMA,
     REST_DIRECTIONS,
@@ -15,6 +16,7 @@ from dualhuman_builder.export.features import (
     canonicalize,
     facing_yaw,
     feature_stats,
+    humanml3d_rotations,
     local_rotations,
     mirror_features,
     mirror_joints,
@@ -139,19 +141,21 @@ def test_matches_humanml3d_recover_from_ric_convention():
 
 def test_rotations_rebuild_bone_directions():
     joints = _walk(seed=2, frames=30).astype(np.float64)
-    psi = root_facing(joints, 20.0)
-    loc = local_rotations(joints, psi)
+    canon, yaw0, _ = canonicalize(joints)
+    psi = root_facing(joints, 20.0) - yaw0
+    loc = humanml3d_rotations(canon, psi)
     f = motion_features(joints, fps=20)
     six = f[:, FeatureLayout.ROTATIONS].reshape(-1, 21, 6)
     np.testing.assert_allclose(six[..., :3], loc[:-1, :, :, 0], atol=1e-6)
     np.testing.assert_allclose(np.linalg.det(loc), 1.0, atol=1e-9)
-    glob = [np.broadcast_to(np.eye(3), loc[:, 0].shape)]
+    root = Rotation.from_euler("y", -psi[:, None]).as_matrix()  # HumanML3D's root rotation: facing -> +Z
+    glob = [root]
     for j in range(1, 22):
-        glob.append(glob[JOINT22_PARENTS[j]] @ loc[:, j - 1])
-        bone = joints[:, j] - joints[:, JOINT22_PARENTS[j]]
-        bone = Rotation.from_euler("y", -psi[:, None]).apply(bone)  # into the facing frame
+        glob.append((root if j in CHAIN_FIRST else glob[JOINT22_PARENTS[j]]) @ loc[:, j - 1])
+        bone = canon[:, j] - canon[:, JOINT22_PARENTS[j]]
         np.testing.assert_allclose(glob[j] @ REST_DIRECTIONS[j], bone / np.linalg.norm(bone, axis=-1, keepdims=True),
                                    atol=1e-9, err_msg=JOINT22_NAMES[j])  # fmt: skip
+    assert CHAIN_FIRST == (1, 2, 3, 13, 14)  # the collars hang from the root, as in HumanML3D's chains
 
 
 def test_foot_contacts_follow_foot_speed():
@@ -223,8 +227,10 @@ def test_interhuman_round_trip_and_relative_placement(handshake):
 def test_interhuman_rotations_and_contacts():
     a, b = _walk(seed=9, frames=60), _walk(seed=10, frames=60)
     res = interhuman_features(a, b, fps=20, target_fps=None)
-    f = motion_features(a, fps=20)
-    np.testing.assert_allclose(res.person1[:, 132:258], f[:, FeatureLayout.ROTATIONS], atol=1e-5)
+    c = canonicalize_pair(a, b)[0]
+    rot = local_rotations(c[:-1], root_facing(c, 20.0)[:-1])  # facing-frame swings, no twist
+    # InterHuman's 6D: rot_mat[..., :2] flattened by row (r00, r01, r10, r11, r20, r21)
+    np.testing.assert_allclose(res.person1[:, 132:258], rot[..., :2].reshape(len(rot), -1), atol=1e-5)
     np.testing.assert_allclose(res.person1[:, 66:132].reshape(-1, 22, 3),
                                np.diff(canonicalize_pair(a, b)[0], axis=0), atol=1e-6)  # fmt: skip
     # person 2 0.2 m higher (it shares person 1's floor): its contacts vanish (height limits)

@@ -379,3 +379,36 @@ def test_loaders_and_shards_read_only_inside_the_export(ds, tmp_path):
         MotionWindows(ds, window=4, split="evil")
     with pytest.raises(ValueError, match="invalid seq_id '../../elsewhere'"):
         write_shards(ds, tmp_path / "shards", split="evil")
+
+
+def test_a_format_version_1_export_is_not_failed_for_its_older_rotation_convention(ds):
+    """Format version 1 defined the 6D rotations (dims 67:193) otherwise: verify compares the rest."""
+    import io
+
+    import numpy as np
+
+    from dualhuman_builder.export.features import FeatureLayout
+
+    rel = "sequences/s0/motion.npz"
+    manifest = _manifest(ds)
+    with np.load(ds / rel) as z:
+        arrays = {k: z[k] for k in z.files}
+    for key in [k for k in arrays if k.endswith(".features")]:
+        arrays[key] = arrays[key].copy()
+        arrays[key][:, FeatureLayout.ROTATIONS] += np.float32(0.5)  # the older convention's values
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    (ds / rel).write_bytes(buf.getvalue())
+    _relist(ds, manifest, rel)
+    _write_manifest(ds, manifest)
+    assert any("features differ" in p for p in verify_export(ds))  # the current version: a real difference
+    manifest["format_version"] = 1
+    _write_manifest(ds, manifest)
+    assert not any("features differ" in p for p in verify_export(ds)), verify_export(ds)
+    arrays[next(k for k in arrays if k.endswith(".features"))][:, 0] += np.float32(0.5)  # outside the rotations
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    (ds / rel).write_bytes(buf.getvalue())
+    _relist(ds, manifest, rel)
+    _write_manifest(ds, manifest)
+    assert any("features differ" in p for p in verify_export(ds))
