@@ -62,6 +62,9 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("probe_mcap_writer", "benchmarks/probes/probe_mcap_writer.py --repeats 9", ""),
     ("probe_skin_at", "benchmarks/probes/probe_skin_at.py", ""),
     ("probe_collision_band", "benchmarks/probes/probe_collision_band.py", ""),
+    ("probe_interchange_upstream",
+     "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
+     "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
 )
 
 ACCURACY = (("fit_accuracy", "Without a calibration take"),

@@ -1,0 +1,193 @@
+"""Probe: the upstream projects' own code read against our HumanML3D and InterHuman output.
+
+Runs, from checkouts the user points to (nothing is downloaded or copied into this repository):
+
+* HumanML3D (``--humanml3d``, a checkout of EricGuo5513/HumanML3D): its ``common/skeleton.py``
+  ``Skeleton.forward_kinematics_cont6d`` through the notebook ``motion_representation.ipynb``'s
+  ``recover_from_rot`` and ``recover_from_ric``, on ``dualhuman export humanml3d`` output; the
+  largest distance (mm) from our ``new_joints`` over every joint and frame, per motion, with the
+  skeleton's offsets from each motion's first frame (as HumanML3D's own preprocessing sets them);
+* InterGen (``--intergen``, a checkout of tr3e/InterGen): its ``utils/preprocess.py`` ``load_motion``
+  with ``swap=True`` (the left/right mirroring of half its training samples) and ``utils/utils.py``
+  ``process_motion_np`` (its canonicalisation, which turns each person to face +Z with
+  ``qbetween_np``), on ``dualhuman export interhuman`` output: the orthonormality error of the
+  mirrored rotations and whether any processed value is non-finite.
+
+The motions: pairs of rigid-limbed synthetic bodies, the second facing the first (exactly -Z at
+frame 0), both turning in place by 0, 180, 360 and 720 degrees over the take.
+
+    .venv/bin/python benchmarks/probes/probe_interchange_upstream.py \\
+        --humanml3d ~/src/HumanML3D --intergen ~/src/InterGen
+
+Writes ``benchmarks/results/probe_interchange_upstream.json`` (``--out`` elsewhere).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from results_file import Goal, Table, write_results  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+FPS = 30.0
+FRAMES = 90
+TURNS = (0.0, 0.5, 1.0, 2.0)
+BONE_LENGTHS = (0.0, 0.1, 0.1, 0.12, 0.4, 0.4, 0.14, 0.42, 0.42, 0.05, 0.12, 0.12, 0.2, 0.12, 0.12, 0.1, 0.15,
+                0.15, 0.27, 0.27, 0.25, 0.25)  # fmt: skip
+
+
+def _rigid_body(frames: int, yaw: np.ndarray, root_xz, seed: int) -> np.ndarray:
+    """``(T, 22, 3)`` Y-up metres: a T-pose-like template whose bones swing smoothly (lengths kept),
+    turned by ``yaw (T,)`` about +Y, its root at ``root_xz``."""
+    from scipy.spatial.transform import Rotation
+
+    from dualhuman_builder.body.joints import JOINT22_PARENTS
+    from dualhuman_builder.export.features import REST_DIRECTIONS
+
+    rng = np.random.default_rng(seed)
+    parents = JOINT22_PARENTS
+    template = np.zeros((22, 3))
+    template[0] = (0.0, 0.95, 0.0)
+    for j in range(1, 22):  # HumanML3D's rest directions, plausible bone lengths (m)
+        template[j] = template[parents[j]] + REST_DIRECTIONS[j] * BONE_LENGTHS[j]
+    t = np.arange(frames) / FPS
+    local = np.repeat(template[None], frames, axis=0)
+    for j in range(1, 22):
+        rv = 0.4 * np.sin(2 * np.pi * (0.3 + rng.random(3)) * t[:, None] + 6.28 * rng.random(3))
+        local[:, j] = local[:, parents[j]] + Rotation.from_rotvec(rv).apply(template[j] - template[parents[j]])
+    local[..., 1] -= local[..., 1].min() - 0.01
+    local -= template[0] * [1, 0, 1]
+    world = np.einsum("tij,tkj->tki", Rotation.from_euler("y", yaw[:, None]).as_matrix(), local)
+    return (world + np.array([root_xz[0], 0.0, root_xz[1]])).astype(np.float32)
+
+
+def _export(root: Path) -> Path:
+    """The least of an export the converters read (a manifest with every file's SHA-256, each
+    sequence's joints and text): one pair per turn."""
+    import hashlib
+
+    files, sequences = {}, {}
+    for k, turns in enumerate(TURNS):
+        yaw = np.linspace(0.0, 2 * np.pi * turns, FRAMES)
+        a = _rigid_body(FRAMES, yaw, (0.0, 0.0), seed=k)
+        b = _rigid_body(FRAMES, np.pi - yaw, (0.0, 0.8), seed=10 + k)
+        base = root / "sequences" / f"turn{k}"
+        base.mkdir(parents=True)
+        np.savez(base / "motion.npz", **{"a.joints": a, "b.joints": b})
+        (base / "text.json").write_text(json.dumps({"texts": ["two people turn in place."]}))
+        for name in ("motion.npz", "text.json"):
+            files[f"sequences/turn{k}/{name}"] = {"sha256": hashlib.sha256((base / name).read_bytes()).hexdigest()}
+        sequences[f"turn{k}"] = {"split": "train"}
+    manifest = {"format": "dualhuman-export", "format_version": 2, "fps": FPS, "sequences": sequences, "files": files}
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
+
+
+def humanml3d_errors(hml_root: Path, export: Path, work: Path) -> dict:
+    import torch
+
+    np.float = float  # the upstream code predates NumPy 1.24
+    sys.path.insert(0, str(hml_root))
+    from common.skeleton import Skeleton  # noqa: F401 - used by the notebook's code
+    from common.quaternion import qinv, qrot, quaternion_to_cont6d  # noqa: F401
+    from paramUtil import t2m_kinematic_chain, t2m_raw_offsets
+
+    from dualhuman_builder.export.convert import to_humanml3d
+
+    nb = json.loads((hml_root / "motion_representation.ipynb").read_text())
+    code = next("".join(c["source"]) for c in nb["cells"] if "def recover_from_rot" in "".join(c["source"]))
+    ns = {"torch": torch, "qinv": qinv, "qrot": qrot, "quaternion_to_cont6d": quaternion_to_cont6d}
+    exec(code, ns)  # the upstream definitions, run as they are
+    dest = Path(to_humanml3d(export, work / "humanml3d")["dest"])
+    out = {}
+    for f in sorted((dest / "new_joint_vecs").glob("*.npy")):
+        vec = torch.from_numpy(np.load(f)).float()
+        joints = np.load(dest / "new_joints" / f.name)
+        skel = Skeleton(torch.from_numpy(t2m_raw_offsets).float(), t2m_kinematic_chain, "cpu")
+        skel.get_offsets_joints(torch.from_numpy(joints[0]).float())
+        n = len(vec)
+        rot = ns["recover_from_rot"](vec, 22, skel).numpy()
+        ric = ns["recover_from_ric"](vec, 22).numpy()
+        out[f.stem] = {"recover_from_rot_mm": float(1000 * np.linalg.norm(rot - joints[:n], axis=-1).max()),
+                       "recover_from_ric_mm": float(1000 * np.linalg.norm(ric - joints[:n], axis=-1).max())}
+    sys.path.remove(str(hml_root))
+    for name in [m for m in sys.modules if m == "common" or m.startswith("common.") or m == "paramUtil"]:
+        del sys.modules[name]  # InterGen has a package of the same name
+    return out
+
+
+def intergen_checks(ig_root: Path, export: Path, work: Path) -> dict:
+    np.float = float
+    sys.path.insert(0, str(ig_root))
+    from utils.preprocess import load_motion
+    from utils.utils import process_motion_np
+
+    from dualhuman_builder.export.convert import to_interhuman
+
+    dest = Path(to_interhuman(export, work / "interhuman")["dest"])
+    out = {}
+    for f in sorted((dest / "motions_processed" / "person1").glob("*.npy")):
+        worst_ortho, finite = 0.0, True
+        for person in ("person1", "person2"):
+            motion, swapped = load_motion(str(dest / "motions_processed" / person / f.name), 15, swap=True)
+            for m in (motion, swapped):
+                six = m[:, 66:].reshape(len(m), 21, 6)
+                mats = six.reshape(len(m), 21, 3, 2)  # InterHuman: rot_mat[..., :2] flattened by row
+                gram = np.einsum("tjki,tjkl->tjil", mats, mats)
+                worst_ortho = max(worst_ortho, float(np.abs(gram - np.eye(2)).max()))
+                for start in range(0, len(m) - 1, 7):  # InterGen canonicalises at a random window start
+                    proc = process_motion_np(m[start:], 0.001, 0, n_joints=22)[0]
+                    finite &= bool(np.isfinite(proc).all())
+        out[f.stem] = {"mirrored_orthonormality_error": worst_ortho, "all_finite": finite}
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--humanml3d", type=Path, required=True, help="a checkout of EricGuo5513/HumanML3D")
+    ap.add_argument("--intergen", type=Path, required=True, help="a checkout of tr3e/InterGen")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        export = _export(work / "export")
+        hml = humanml3d_errors(args.humanml3d.resolve(), export, work)
+        ig = intergen_checks(args.intergen.resolve(), export, work)
+    for name, r in {**hml, **ig}.items():
+        print(name, r)
+    figures = {
+        "humanml3d": hml, "intergen": ig,
+        "summary": {
+            "recover_from_rot_worst_mm": max(r["recover_from_rot_mm"] for r in hml.values()),
+            "recover_from_ric_worst_mm": max(r["recover_from_ric_mm"] for r in hml.values()),
+            "mirrored_orthonormality_worst": max(r["mirrored_orthonormality_error"] for r in ig.values()),
+            "intergen_all_finite": int(all(r["all_finite"] for r in ig.values())),
+        },
+    }
+    rows = [[name, f"humanml3d.{name}.recover_from_rot_mm", f"humanml3d.{name}.recover_from_ric_mm"] for name in hml]
+    write_results(
+        "probe_interchange_upstream", figures,
+        params={"fps": FPS, "frames": FRAMES, "turns_degrees": [360 * t for t in TURNS]},
+        goals=[Goal("summary.recover_from_rot_worst_mm", "<=", 10.0, "mm", "HumanML3D recover_from_rot, worst joint"),
+               Goal("summary.recover_from_ric_worst_mm", "<=", 1.0, "mm", "HumanML3D recover_from_ric, worst joint"),
+               Goal("summary.mirrored_orthonormality_worst", "<=", 1e-5, "", "InterGen-mirrored rotations, orthonormality"),
+               Goal("summary.intergen_all_finite", ">=", 1, "", "InterGen's processing gives no NaN/inf")],
+        tables=[Table("HumanML3D's own recovery of our motions (worst joint, mm)",
+                      ["motion", "recover_from_rot", "recover_from_ric"], rows)],
+        notes="Upstream code run from the checkouts given on the command line; motions converted by "
+              "`dualhuman export humanml3d` / `interhuman` from synthetic rigid-limbed pairs turning in place. "
+              "The HumanML3D motions are resampled to 20 fps, so their limbs are rigid only to the interpolation.",
+        out=args.out)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
