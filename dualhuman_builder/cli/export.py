@@ -127,6 +127,8 @@ def export():
       dualhuman export shards OUT DIR       WebDataset tar shards of a split
       dualhuman export interhuman OUT DEST  InterGen's InterHuman layout (30 fps)
       dualhuman export humanml3d OUT DEST   HumanML3D's layout (20 fps)
+      dualhuman export import-humanml3d SRC OUT   a HumanML3D folder -> dataset
+      dualhuman export import-interhuman SRC OUT  an InterHuman folder -> dataset
     """
 
 
@@ -266,3 +268,88 @@ def export_humanml3d(out: Path, dest: Path, split: str, label_texts: bool):
     Example:  dualhuman export humanml3d WS/export WS/humanml3d
     """
     _convert("humanml3d", out, dest, split, label_texts)
+
+
+def _import(layout: str, src: Path, out: Path, split_ratio: float, seed: int) -> None:
+    from rich.markup import escape
+
+    from dualhuman_builder.export import importers
+
+    res = getattr(importers, f"import_{layout}")(src, out, split_ratio=split_ratio, seed=seed)
+    c = res["manifest"]["counts"]
+    console.print(f"{res['layout']}: {res['imported']} sequence(s) imported ({c['train']} train, {c['test']} test), "
+                  f"{len(res['skipped'])} skipped -> {out}", highlight=False, soft_wrap=True)  # fmt: skip
+    for name, why in res["skipped"].items():  # names and reasons come from the source folder: never markup
+        err_console.print(f"[yellow]skipped[/] {escape(repr(name))}: {escape(why)}", highlight=False, soft_wrap=True)
+
+
+_IMPORT_OPTIONS = [
+    click.argument("src", type=click.Path(file_okay=False, exists=True, path_type=Path)),
+    click.argument("out", type=click.Path(file_okay=False, path_type=Path)),
+    click.option("--split", "split_ratio", type=click.FloatRange(min=0.0, max=1.0, min_open=True), default=0.75,
+                 show_default=True, help="Share of sequences in the export's train split."),
+    click.option("--seed", type=int, default=0, show_default=True, help="Seed of the split."),
+]  # fmt: skip
+
+
+def _import_options(f):
+    for deco in reversed(_IMPORT_OPTIONS):
+        f = deco(f)
+    return f
+
+
+@export.command("import-humanml3d")
+@_import_options
+def export_import_humanml3d(src: Path, out: Path, split_ratio: float, seed: int):
+    """Import a folder in HumanML3D's layout (SRC) as a dataset export in OUT, to train the
+    toolkit's models on it; the inverse of `dualhuman export humanml3d`.
+
+    \b
+    Reads, under SRC:
+      new_joints/<name>.npy  (T, 22, 3) joints, metres, Y up, 20 fps, each
+                             motion in its own canonical frame
+      texts/<name>.txt       caption#tokens#from#to lines (captions kept)
+      train/val/test.txt     kept per sequence in sequence.json
+                             (meta.imported_from.split)
+
+    The export holds pairs: motions <id>_a and <id>_b (as `dualhuman export humanml3d` names them)
+    become sequence <id>; any other motion is skipped as unpaired and listed. HumanML3D keeps no
+    relative placement, so both persons start at the origin facing +Z. Only joints are imported:
+    the export's body model is "joints-only" (no pose or shape parameters); joints, features,
+    texts and `dualhuman export verify` work as for any export. The export's own train/test split
+    is drawn with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a
+    link out of SRC) are skipped with their reason.
+
+    Example:  dualhuman export import-humanml3d ~/data/HumanML3D WS/hml-export
+    """
+    _import("humanml3d", src, out, split_ratio, seed)
+
+
+@export.command("import-interhuman")
+@_import_options
+def export_import_interhuman(src: Path, out: Path, split_ratio: float, seed: int):
+    """Import a folder in InterHuman's layout (SRC, InterGen's DATA_ROOT) as a dataset export in
+    OUT, to train the toolkit's models on it; the inverse of `dualhuman export interhuman`.
+
+    \b
+    Reads, under SRC:
+      motions_processed/person1/<id>.npy  (T, 492) raw rows at 30 fps;
+      motions_processed/person2/<id>.npy  columns 0:66 are the 22 body
+                                          joints, metres, Z up (turned
+                                          to Y up)
+      annots/<id>.txt                     one description per line
+      train/val/test.txt                  kept per sequence in
+                                          sequence.json (meta.imported_from)
+      ignore_list.txt                     these ids are skipped
+      conversion.json                     if SRC was written by `dualhuman
+                                          export interhuman`: the joints go
+                                          back to the original world frame
+
+    person1 becomes person a, person2 person b, in their shared frame. Only joints are imported
+    (body model "joints-only": no pose or shape parameters). The export's own train/test split is
+    drawn with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a link
+    out of SRC, person2 missing) are skipped with their reason.
+
+    Example:  dualhuman export import-interhuman ~/data/InterHuman WS/ih-export
+    """
+    _import("interhuman", src, out, split_ratio, seed)

@@ -127,7 +127,7 @@ def _npy_header(f: BinaryIO, what: str) -> tuple[tuple[int, ...], np.dtype, bool
     return tuple(shape), dtype, bool(fortran), offset
 
 
-def _npy_from_bytes(data: bytes, what: str) -> np.ndarray:
+def npy_from_bytes(data: bytes, what: str) -> np.ndarray:
     """The array of a whole ``.npy`` file in ``data``; its header must account for every byte."""
     shape, dtype, fortran, offset = _npy_header(io.BytesIO(data), what)
     count = math.prod(shape)
@@ -600,7 +600,7 @@ def verify_export(out_dir: str | Path, check_features: bool = True,
         with f:
             data = f.read(MAX_STATS_BYTES)  # at most its listed size, checked against the cap by open()
         try:
-            arr = _npy_from_bytes(data, _q(rel))
+            arr = npy_from_bytes(data, _q(rel))
         except ValueError as e:
             problems.append(f"{_q(rel)}: unreadable ({e})")
             continue
