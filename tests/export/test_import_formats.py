@@ -5,7 +5,6 @@ by hand from synthetic joints (no fit)."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -15,13 +14,12 @@ from click.testing import CliRunner
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from dualhuman_builder.body.joints import JOINT22_PARENTS
+from synthetic_pairs import FPS, TEXT, face_to_face, write_export
 from dualhuman_builder.cli.app import main
 from dualhuman_builder.errors import FormatError
 from dualhuman_builder.export.convert import to_humanml3d, to_interhuman
 from dualhuman_builder.export.features import (
     HUMANML3D_FPS,
-    REST_DIRECTIONS,
     resample_joints,
 )
 from dualhuman_builder.export.files import load_motion
@@ -34,58 +32,15 @@ from dualhuman_builder.export.interhuman import INTERHUMAN_FPS
 from dualhuman_builder.export.loader import MotionWindows
 from dualhuman_builder.export.verify import verify_export
 
-FPS = 10.0
 MM = 1e-3
-BONE_LENGTHS = np.array([0, .11, .11, .12, .38, .38, .13, .40, .40, .05, .12, .12, .20, .14, .14, .10, .12, .12,
-                         .26, .26, .24, .24])  # fmt: skip
-TEXT = "Two people hug, the left one turns right."
-
-
-def _body(T: int, seed: int, turns: float = 0.0) -> np.ndarray:
-    """``(T, 22, 3)`` joints of a wiggling rest skeleton facing +Z at frame 0, its root yaw going through
-    ``turns`` full turns."""
-    rng = np.random.default_rng(seed)
-    rest = np.zeros((22, 3))
-    rest[0] = [0.0, 0.95, 0.0]
-    for j in range(1, 22):
-        rest[j] = rest[JOINT22_PARENTS[j]] + BONE_LENGTHS[j] * REST_DIRECTIONS[j]
-    wiggle = np.cumsum(rng.normal(0.0, 0.01, (T, 22, 3)), axis=0)
-    j = rest + wiggle - wiggle[:1]
-    yaw = np.linspace(0.0, 2 * np.pi * turns, T)
-    rel = j - j[:, :1]
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    rel = np.stack([c * rel[..., 0] + s * rel[..., 2], rel[..., 1], -s * rel[..., 0] + c * rel[..., 2]], -1)
-    return rel + j[:, :1]
-
-
-def _face_to_face(T: int, seed: int, turns: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Person a faces +Z, person b faces exactly -Z 0.8 m in front of it."""
-    return _body(T, seed, turns) + [0.3, 0.0, -1.0], _body(T, seed + 1) * [-1.0, 1.0, -1.0] + [0.3, 0.0, -0.2]
-
-
-def _write_export(root: Path, seqs: dict) -> Path:
-    """A minimal export (manifest with SHA-256 of every file) of ``{sid: (joints a, joints b, split)}``,
-    what the converters read."""
-    files, sequences = {}, {}
-    for sid, (a, b, split) in seqs.items():
-        base = root / "sequences" / sid
-        base.mkdir(parents=True)
-        np.savez(base / "motion.npz", **{"a.joints": np.float32(a), "b.joints": np.float32(b)})
-        (base / "text.json").write_text(json.dumps({"texts": [TEXT]}))
-        for name in ("motion.npz", "text.json"):
-            files[f"sequences/{sid}/{name}"] = {"sha256": hashlib.sha256((base / name).read_bytes()).hexdigest()}
-        sequences[sid] = {"split": split}
-    manifest = {"format": "dualhuman-export", "format_version": 1, "fps": FPS, "sequences": sequences, "files": files}
-    (root / "manifest.json").write_text(json.dumps(manifest))
-    return root
 
 
 @pytest.fixture(scope="module")
 def source(tmp_path_factory):
     """A two-sequence export (a face-to-face pair, and one that turns in place) and the original joints."""
     tmp = tmp_path_factory.mktemp("import")
-    hug, turn = _face_to_face(T=30, seed=3), _face_to_face(T=30, seed=5, turns=1.0)
-    export = _write_export(tmp / "ds", {"hug": (*hug, "train"), "turn": (*turn, "test")})
+    hug, turn = face_to_face(T=30, seed=3), face_to_face(T=30, seed=5, turns=1.0)
+    export = write_export(tmp / "ds", {"hug": (*hug, "train"), "turn": (*turn, "test")})
     return tmp, export, {"hug": hug, "turn": turn}
 
 
@@ -275,7 +230,7 @@ BAD_TRANSFORM = b'{"layout": "interhuman", "sequences": {"s": {"transform": {"ya
 def test_hostile_side_files_import_or_fail_clearly(tmp_path_factory, which, data):
     tmp = tmp_path_factory.mktemp("side")
     ih = tmp / "ih"
-    a, b = _face_to_face(T=6, seed=1)
+    a, b = face_to_face(T=6, seed=1)
     for k, j in ((1, a), (2, b)):
         (ih / "motions_processed" / f"person{k}").mkdir(parents=True)
         raw = np.zeros((len(j), 492), np.float32)

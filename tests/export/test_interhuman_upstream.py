@@ -7,8 +7,6 @@ size, and the refusal to write non-finite values. Exports are written by hand fr
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +14,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dualhuman_builder.body.joints import JOINT22_PARENTS
+from synthetic_pairs import FPS, body, write_export
+from synthetic_pairs import face_to_face as _face_to_face
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.export.convert import (
     read_interhuman,
@@ -25,58 +24,12 @@ from dualhuman_builder.export.convert import (
     to_humanml3d,
     to_interhuman,
 )
-from dualhuman_builder.export.features import REST_DIRECTIONS
 
-FPS = 10.0
 MM = 1e-3
-BONE_LENGTHS = np.array([0, .11, .11, .12, .38, .38, .13, .40, .40, .05, .12, .12, .20, .14, .14, .10, .12, .12,
-                         .26, .26, .24, .24])  # fmt: skip
 # --- InterGen's definitions, written out (utils/utils.py)
 RIGHT_CHAIN = np.array([2, 5, 8, 11, 14, 17, 19, 21])
 LEFT_CHAIN = np.array([1, 4, 7, 10, 13, 16, 18, 20])
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # trans_matrix
-
-
-# ----------------------------------------------------------------------------- synthetic exports
-def _body(T: int, seed: int, turns: float = 0.0) -> np.ndarray:
-    """``(T, 22, 3)`` joints of a wiggling rest skeleton facing +Z at frame 0 (hips exactly level),
-    its root yaw going through ``turns`` full turns."""
-    rng = np.random.default_rng(seed)
-    rest = np.zeros((22, 3))
-    rest[0] = [0.0, 0.95, 0.0]
-    for j in range(1, 22):
-        rest[j] = rest[JOINT22_PARENTS[j]] + BONE_LENGTHS[j] * REST_DIRECTIONS[j]
-    wiggle = np.cumsum(rng.normal(0.0, 0.01, (T, 22, 3)), axis=0)
-    wiggle -= wiggle[:1]
-    j = rest + wiggle
-    yaw = np.linspace(0.0, 2 * np.pi * turns, T)
-    rel = j - j[:, :1]
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    rel = np.stack([c * rel[..., 0] + s * rel[..., 2], rel[..., 1], -s * rel[..., 0] + c * rel[..., 2]], -1)
-    return rel + j[:, :1]
-
-
-def _face_to_face(T: int = 12, seed: int = 0, turns: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Person a faces +Z, person b faces exactly -Z 0.8 m in front of it (a half turn written exactly)."""
-    a = _body(T, seed, turns) + [0.3, 0.0, -1.0]
-    b = _body(T, seed + 1) * [-1.0, 1.0, -1.0] + [0.3, 0.0, -0.2]
-    return a, b
-
-
-def _write_export(root: Path, seqs: dict, fps: float = FPS) -> Path:
-    """A minimal export (manifest with SHA-256 of every file) of ``{sid: (joints a, joints b, split)}``."""
-    files, sequences = {}, {}
-    for sid, (a, b, split) in seqs.items():
-        base = root / "sequences" / sid
-        base.mkdir(parents=True)
-        np.savez(base / "motion.npz", **{"a.joints": np.float32(a), "b.joints": np.float32(b)})
-        (base / "text.json").write_text(json.dumps({"texts": ["Two people hug, the left one turns right."]}))
-        for name in ("motion.npz", "text.json"):
-            files[f"sequences/{sid}/{name}"] = {"sha256": hashlib.sha256((base / name).read_bytes()).hexdigest()}
-        sequences[sid] = {"split": split}
-    manifest = {"format": "dualhuman-export", "format_version": 1, "fps": fps, "sequences": sequences, "files": files}
-    (root / "manifest.json").write_text(json.dumps(manifest))
-    return root
 
 
 # ----------------------------------------------------------------------------- InterGen, recomputed
@@ -165,7 +118,7 @@ def face_to_face(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("upstream")
     a, b = _face_to_face()
     ta, tb = _face_to_face(T=31, seed=5, turns=1.0)
-    export = _write_export(tmp / "ds", {"hug": (a, b, "train"), "turn": (ta, tb, "test")})
+    export = write_export(tmp / "ds", {"hug": (a, b, "train"), "turn": (ta, tb, "test")})
     return export, to_interhuman(export, tmp / "ih")
 
 
@@ -218,7 +171,7 @@ def test_read_back_recovers_our_joints(face_to_face):
 
 def test_one_sequence_export_writes_loadable_splits(tmp_path):
     a, b = _face_to_face()
-    export = _write_export(tmp_path / "ds", {"only": (a, b, "train")})
+    export = write_export(tmp_path / "ds", {"only": (a, b, "train")})
     for convert, name in ((to_interhuman, "only"), (to_humanml3d, "only_a")):
         doc = convert(export, tmp_path / convert.__name__)
         dest = Path(doc["dest"])
@@ -242,7 +195,7 @@ def test_non_finite_output_is_refused(tmp_path, convert, fps, where):
     a, b = _face_to_face(T=20)
     b = b.copy()
     b[:, 15, 0] = np.where(np.arange(20) % 2, 3e38, -3e38)  # finite in float32; its steps are not
-    export = _write_export(tmp_path / "ds", {"wild": (a, b, "train")}, fps=fps)
+    export = write_export(tmp_path / "ds", {"wild": (a, b, "train")}, fps=fps)
     with pytest.raises(DualhumanError, match=rf"refusing to write .*{where}.*NaN or inf") as e:
         convert(export, tmp_path / "out")
     assert e.value.fix
@@ -252,15 +205,15 @@ def test_intergen_mirroring_equals_converting_the_mirrored_pair(tmp_path):
     from dualhuman_builder.export.features import mirror_joints
 
     a, b = _face_to_face(T=31, seed=7, turns=1.0)
-    export = _write_export(tmp_path / "ds", {"p": (a, b, "train")})
-    mirrored = _write_export(tmp_path / "dm", {"p": (mirror_joints(a), mirror_joints(b), "train")})
+    export = write_export(tmp_path / "ds", {"p": (a, b, "train")})
+    mirrored = write_export(tmp_path / "dm", {"p": (mirror_joints(a), mirror_joints(b), "train")})
     ours = _raws(Path(to_interhuman(export, tmp_path / "o")["dest"]), "p")
     theirs = _raws(Path(to_interhuman(mirrored, tmp_path / "m")["dest"]), "p")
     for raw, raw_m in zip(ours, theirs):
         np.testing.assert_allclose(_swap(raw)[:, 66:], raw_m[:, 186:312], atol=1e-5)
 
 
-_BODY = _body(3, 11)
+_BODY = body(3, 11)
 
 
 @given(st.one_of(st.floats(np.pi - 2e-3, np.pi + 2e-3), st.floats(-4.0, 4.0), st.just(np.pi), st.just(-np.pi)))
@@ -296,7 +249,7 @@ def test_a_later_frame_facing_minus_z_is_avoided_too(tmp_path):
     b = np.repeat(b[:1], 12, axis=0)  # stands still, facing exactly -Z ...
     turn = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # b faces +X on frames 0..5
     b[:6] = (b[:6] - b[:6, :1]) @ turn.T + b[:6, :1]
-    doc = to_interhuman(_write_export(tmp_path / "ds", {"late": (a, b, "train")}), tmp_path / "ih")
+    doc = to_interhuman(write_export(tmp_path / "ds", {"late": (a, b, "train")}), tmp_path / "ih")
     assert doc["sequences"]["late"]["transform"]["raw_yaw"] != 0.0
     r1, r2 = _raws(Path(doc["dest"]), "late")
     for start in range(len(r1) - 2):
