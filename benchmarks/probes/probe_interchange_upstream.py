@@ -14,7 +14,8 @@ Runs, from checkouts the user points to (nothing is downloaded or copied into th
   mirrored rotations and whether any processed value is non-finite.
 
 The motions: pairs of rigid-limbed synthetic bodies, the second facing the first (exactly -Z at
-frame 0), both turning in place by 0, 180, 360 and 720 degrees over the take.
+frame 0), both turning in place by 0, 180, 360 and 720 degrees over the take; and the motions of any
+export given with ``--export`` (the demo's fitted handshake: ``--export demo-workspace/export``).
 
     .venv/bin/python benchmarks/probes/probe_interchange_upstream.py \\
         --humanml3d ~/src/HumanML3D --intergen ~/src/InterGen
@@ -92,11 +93,22 @@ def _export(root: Path) -> Path:
     return root
 
 
+def _use_checkout(root: Path) -> None:
+    """Make ``root`` the one upstream checkout imported from: both projects have top-level packages
+    named ``common`` and ``utils``."""
+    for other in [p for p in sys.path if p.startswith("/") and Path(p, "common").is_dir() and p != str(root)]:
+        sys.path.remove(other)
+    for name in [m for m in sys.modules if m.split(".")[0] in ("common", "utils", "paramUtil", "datasets")]:
+        del sys.modules[name]
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+
+
 def humanml3d_errors(hml_root: Path, export: Path, work: Path) -> dict:
     import torch
 
     np.float = float  # the upstream code predates NumPy 1.24
-    sys.path.insert(0, str(hml_root))
+    _use_checkout(hml_root)
     from common.skeleton import Skeleton  # noqa: F401 - used by the notebook's code
     from common.quaternion import qinv, qrot, quaternion_to_cont6d  # noqa: F401
     from paramUtil import t2m_kinematic_chain, t2m_raw_offsets
@@ -119,15 +131,12 @@ def humanml3d_errors(hml_root: Path, export: Path, work: Path) -> dict:
         ric = ns["recover_from_ric"](vec, 22).numpy()
         out[f.stem] = {"recover_from_rot_mm": float(1000 * np.linalg.norm(rot - joints[:n], axis=-1).max()),
                        "recover_from_ric_mm": float(1000 * np.linalg.norm(ric - joints[:n], axis=-1).max())}
-    sys.path.remove(str(hml_root))
-    for name in [m for m in sys.modules if m == "common" or m.startswith("common.") or m == "paramUtil"]:
-        del sys.modules[name]  # InterGen has a package of the same name
     return out
 
 
 def intergen_checks(ig_root: Path, export: Path, work: Path) -> dict:
     np.float = float
-    sys.path.insert(0, str(ig_root))
+    _use_checkout(ig_root)
     from utils.preprocess import load_motion
     from utils.utils import process_motion_np
 
@@ -155,13 +164,19 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--humanml3d", type=Path, required=True, help="a checkout of EricGuo5513/HumanML3D")
     ap.add_argument("--intergen", type=Path, required=True, help="a checkout of tr3e/InterGen")
+    ap.add_argument("--export", type=Path, action="append", default=[],
+                    help="also score this dataset export (e.g. the demo's, demo-workspace/export); repeatable; its "
+                         "motions are named <folder>/<motion>")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    hml, ig = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        export = _export(work / "export")
-        hml = humanml3d_errors(args.humanml3d.resolve(), export, work)
-        ig = intergen_checks(args.intergen.resolve(), export, work)
+        exports = [("", _export(work / "export"))] + [(f"{e.absolute().parent.name}/", e.resolve()) for e in args.export]
+        for k, (prefix, export) in enumerate(exports):
+            (work / str(k)).mkdir()
+            hml.update({prefix + n: r for n, r in humanml3d_errors(args.humanml3d.resolve(), export, work / str(k)).items()})
+            ig.update({prefix + n: r for n, r in intergen_checks(args.intergen.resolve(), export, work / str(k)).items()})
     for name, r in {**hml, **ig}.items():
         print(name, r)
     figures = {
@@ -176,7 +191,8 @@ def main(argv=None) -> None:
     rows = [[name, f"humanml3d.{name}.recover_from_rot_mm", f"humanml3d.{name}.recover_from_ric_mm"] for name in hml]
     write_results(
         "probe_interchange_upstream", figures,
-        params={"fps": FPS, "frames": FRAMES, "turns_degrees": [360 * t for t in TURNS]},
+        params={"fps": FPS, "frames": FRAMES, "turns_degrees": [360 * t for t in TURNS],
+                "exports": [e.absolute().parent.name + "/" + e.name for e in args.export]},
         goals=[Goal("summary.recover_from_rot_worst_mm", "<=", 10.0, "mm", "HumanML3D recover_from_rot, worst joint"),
                Goal("summary.recover_from_ric_worst_mm", "<=", 1.0, "mm", "HumanML3D recover_from_ric, worst joint"),
                Goal("summary.mirrored_orthonormality_worst", "<=", 1e-5, "", "InterGen-mirrored rotations, orthonormality"),
@@ -184,7 +200,8 @@ def main(argv=None) -> None:
         tables=[Table("HumanML3D's own recovery of our motions (worst joint, mm)",
                       ["motion", "recover_from_rot", "recover_from_ric"], rows)],
         notes="Upstream code run from the checkouts given on the command line; motions converted by "
-              "`dualhuman export humanml3d` / `interhuman` from synthetic rigid-limbed pairs turning in place. "
+              "`dualhuman export humanml3d` / `interhuman` from synthetic rigid-limbed pairs turning in place "
+              "(turn0..turn3) and from the exports given with --export (named <folder>/<motion>). "
               "The HumanML3D motions are resampled to 20 fps, so their limbs are rigid only to the interpolation.",
         out=args.out)  # fmt: skip
 
