@@ -172,11 +172,13 @@ def main(argv=None) -> None:
     hml, ig = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        exports = [("", _export(work / "export"))] + [(f"{e.absolute().parent.name}/", e.resolve()) for e in args.export]
+        exports = [("", _export(work / "export"))]
+        exports += [(f"{e.absolute().parent.name}/", e.resolve()) for e in args.export]
         for k, (prefix, export) in enumerate(exports):
-            (work / str(k)).mkdir()
-            hml.update({prefix + n: r for n, r in humanml3d_errors(args.humanml3d.resolve(), export, work / str(k)).items()})
-            ig.update({prefix + n: r for n, r in intergen_checks(args.intergen.resolve(), export, work / str(k)).items()})
+            here = work / str(k)
+            here.mkdir()
+            hml.update({prefix + n: r for n, r in humanml3d_errors(args.humanml3d.resolve(), export, here).items()})
+            ig.update({prefix + n: r for n, r in intergen_checks(args.intergen.resolve(), export, here).items()})
     for name, r in {**hml, **ig}.items():
         print(name, r)
     figures = {
@@ -195,7 +197,8 @@ def main(argv=None) -> None:
                 "exports": [e.absolute().parent.name + "/" + e.name for e in args.export]},
         goals=[Goal("summary.recover_from_rot_worst_mm", "<=", 10.0, "mm", "HumanML3D recover_from_rot, worst joint"),
                Goal("summary.recover_from_ric_worst_mm", "<=", 1.0, "mm", "HumanML3D recover_from_ric, worst joint"),
-               Goal("summary.mirrored_orthonormality_worst", "<=", 1e-5, "", "InterGen-mirrored rotations, orthonormality"),
+               Goal("summary.mirrored_orthonormality_worst", "<=", 1e-5, "",
+                    "InterGen-mirrored rotations, orthonormality"),
                Goal("summary.intergen_all_finite", ">=", 1, "", "InterGen's processing gives no NaN/inf")],
         tables=[Table("HumanML3D's own recovery of our motions (worst joint, mm)",
                       ["motion", "recover_from_rot", "recover_from_ric"], rows)],
