@@ -213,3 +213,21 @@ def test_a_decoding_process_behind_the_packets_calls_no_device_silent():
     assert dp.counters[0]["samples"] == 120
     kinds = [e.kind for m in got for e in m[3]]
     assert "stale" not in kinds, kinds
+
+
+def test_the_decoding_side_does_not_load_torch():
+    """The decoding process imports the decoders and the sample encoder only: no torch or anny (seconds
+    and hundreds of MB per process), though the MVN wire format names the body's segments."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "import dualhuman_builder.capture.decoding, dualhuman_builder.capture.log.writer\n"
+            "from dualhuman_builder.capture.sources import make_decoder\n"
+            "for u in ['mvn+udp://127.0.0.1:9763', 'vive+udp://127.0.0.1:8051', 'xbus://loop', 'mti+can://virtual/ch0',"
+            " 'vive+usb://']:\n"
+            "    make_decoder(u)\n"
+            "print(sorted(m for m in ('torch', 'anny') if m in sys.modules))\n")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
