@@ -37,6 +37,7 @@ from dualhuman_builder.sync.mount_constellation import HeadingProblem
 from dualhuman_builder.sync.mount_rotation import (MOVED_DEG, flag_outliers, quat_matrices, rotation_residual,
                                                    rotation_rounds, yaw_matrices)  # fmt: skip
 from dualhuman_builder.sync.mount_translation import TranslationDesign
+from dualhuman_builder.sync import priors
 from dualhuman_builder.sync.mount_types import CarriedMounts, MountCalibration, SuitChain
 
 #: Least valid data (s) a calibration needs; fewer raise ValueError.
@@ -49,8 +50,8 @@ _TRANS_FLOOR_M = 0.02
 #: hardly rotates solvable (its ``translation_std_m`` then comes out large).
 _MOUNT_PRIOR_M = 1.0
 #: Prior std per axis (m) of a mount offset around its site, when sites are given
-#: (``docs/decisions/0011-heading-from-tracker-constellation.md``).
-SITE_PRIOR_M = 0.02
+#: (:data:`~dualhuman_builder.sync.priors.SITE_M`; ``docs/decisions/0011-heading-from-tracker-constellation.md``).
+SITE_PRIOR_M = priors.SITE_M
 #: Residuals count as one independent observation per this many seconds (they are correlated over
 #: about that time): it sets the weight of data against priors and inflates the uncertainties.
 _BLOCK_S = 1.0
@@ -118,7 +119,7 @@ def _check_inputs(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid):
 
 
 def calibrate_mounts(times_s, seg_rot, seg_pos, trk_rot, trk_pos, valid, knot_spacing_s: float = 1.0,
-                     drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = 0.05 / math.sqrt(60.0),
+                     drift_knot_spacing_s: float = 0.1, drift_rate_m_per_sqrt_s: float = priors.ROOT_DRIFT_M_PER_SQRT_S,
                      rounds: int = 4, sites=None, site_prior_m: float = SITE_PRIOR_M,
                      chain: SuitChain | None = None, carried: CarriedMounts | None = None) -> MountCalibration:  # fmt: skip
     """Estimate tracker mounts, the suit's heading and its position drift (model in the module

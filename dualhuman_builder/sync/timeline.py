@@ -42,6 +42,7 @@ from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
 from dualhuman_builder.rig import tracker_site
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.fileio import load_npz, save_npz
+from dualhuman_builder.sync.priors import MISALIGNMENT_DEG
 from dualhuman_builder.sync.resample import resample_linear, resample_quat
 
 SYNC_VERSION = 1
@@ -52,7 +53,7 @@ MAX_GAP_S = 0.05
 MOUNT_DRIFT_KNOTS_S = 1.0
 #: Prior std per axis (deg) of each suit segment's constant misalignment, solved with the mounts
 #: (:class:`~dualhuman_builder.sync.mount_types.SuitChain`; ``docs/decisions/0012-suit-chain-misalignments.md``).
-CHAIN_PRIOR_DEG = 2.0
+CHAIN_PRIOR_DEG = MISALIGNMENT_DEG
 _PARENT_INDEX = [MVN_SEGMENTS.index(MVN_PARENTS[g]) if MVN_PARENTS[g] else -1 for g in MVN_SEGMENTS]
 #: Speed spread (std) below which a stream is too still for a lag: angular rad/s, linear m/s.
 MIN_ANGULAR_MOTION = 0.02
