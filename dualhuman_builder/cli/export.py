@@ -203,13 +203,28 @@ def export_shards(out: Path, shard_dir: Path, split: str, max_mb: float):
     console.print(f"{len(paths)} shard(s) in {shard_dir}", highlight=False)
 
 
-def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) -> None:
+def _print_retarget(doc: dict) -> None:
+    """The bone-length change of a retargeted conversion: overall, then each bone's ratio range."""
+    rt = doc.get("retarget") or {}
+    if rt.get("skeleton", "none") == "none" or not rt.get("per_bone"):
+        return
+    console.print(f"retargeted {rt['persons']} person(s) to the {rt['skeleton']} skeleton: bone length "
+                  f"x{rt['ratio_min']:.3f} to x{rt['ratio_max']:.3f} (mean x{rt['ratio_mean']:.3f}), root path "
+                  f"x{rt['root_scale_min']:.3f} to x{rt['root_scale_max']:.3f}; per bone, named by its end joint:",
+                  highlight=False, soft_wrap=True)  # fmt: skip
+    cells = [f"{name:<15}x{lo:.3f}" + (f"-{hi:.3f}" if hi - lo >= 5e-4 else "      ")
+             for name, (lo, hi) in rt["per_bone"].items()]  # fmt: skip
+    for k in range(0, len(cells), 3):
+        console.print("  " + "  ".join(cells[k:k + 3]), highlight=False, soft_wrap=True)
+
+
+def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool, retarget: str = "none") -> None:
     from rich.markup import escape
 
     from dualhuman_builder.export import convert
 
     try:
-        doc = getattr(convert, f"to_{layout}")(out, dest, split=split, label_texts=label_texts)
+        doc = getattr(convert, f"to_{layout}")(out, dest, split=split, label_texts=label_texts, retarget=retarget)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     c, unit = doc["counts"], "motions" if "motions" in doc else "sequences"
@@ -217,6 +232,7 @@ def _convert(layout: str, out: Path, dest: Path, split: str, label_texts: bool) 
     console.print(f"{layout}: {doc['sequences_converted']} sequence(s){per} ({c['train']} train, {c['test']} test {unit}), "
                   f"{len(doc['skipped'])} skipped, {len(doc['texts_from_labels'])} captioned from labels -> {dest}",
                   highlight=False, soft_wrap=True)  # fmt: skip
+    _print_retarget(doc)
     for note in doc.get("notes", []):  # e.g. split lists filled because the export has too few sequences
         err_console.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
 
@@ -228,6 +244,11 @@ _CONVERT_OPTIONS = [
                  help="Convert only this split of the export."),
     click.option("--label-texts/--no-label-texts", default=True, show_default=True,
                  help="Caption a sequence without text from its labels ('two people interact: <label>.'); off: skip it."),
+    click.option("--retarget", type=click.Choice(["none", "humanml3d", "interhuman"]), default="none",
+                 show_default=True,
+                 help="Give both persons a format's reference skeleton (each bone's direction kept per frame, its "
+                      "length set; root path scaled by the leg ratio) and print the bone-length change. humanml3d: "
+                      "HumanML3D's skeleton (subject 000021); interhuman: not available, no published bone lengths."),
 ]  # fmt: skip
 
 
@@ -239,7 +260,7 @@ def _convert_options(f):
 
 @export.command("interhuman")
 @_convert_options
-def export_interhuman(out: Path, dest: Path, split: str, label_texts: bool):
+def export_interhuman(out: Path, dest: Path, split: str, label_texts: bool, retarget: str):
     """Convert the export OUT to InterGen's InterHuman layout in DEST (30 fps), so InterGen's
     dataloader reads it unchanged (DATA_ROOT = DEST).
 
@@ -251,34 +272,38 @@ def export_interhuman(out: Path, dest: Path, split: str, label_texts: bool):
 
     Example:  dualhuman export interhuman WS/export WS/interhuman
     """
-    _convert("interhuman", out, dest, split, label_texts)
+    _convert("interhuman", out, dest, split, label_texts, retarget)
 
 
 @export.command("humanml3d")
 @_convert_options
-def export_humanml3d(out: Path, dest: Path, split: str, label_texts: bool):
+def export_humanml3d(out: Path, dest: Path, split: str, label_texts: bool, retarget: str):
     """Convert the export OUT to HumanML3D's layout in DEST (20 fps, one motion per person: <id>_a,
     <id>_b), for single-person text-to-motion code (T2M, MDM, ...).
 
     Writes new_joint_vecs/<name>.npy (T-1, 263), new_joints/<name>.npy (T-1, 22, 3) canonical,
     texts/<name>.txt (caption#tokens#0.0#0.0; tokens are lowercased words tagged OTHER, not spaCy's
     lemmas and POS), Mean.npy/Std.npy over the train motions, train/val/test/all.txt (val = test),
-    and conversion.json.
+    and conversion.json. With --retarget humanml3d every motion gets HumanML3D's reference bone
+    lengths, so the vectors lie where HumanML3D's Mean/Std and the T2M evaluators expect them.
 
-    Example:  dualhuman export humanml3d WS/export WS/humanml3d
+    Example:  dualhuman export humanml3d WS/export WS/humanml3d --retarget humanml3d
     """
-    _convert("humanml3d", out, dest, split, label_texts)
+    _convert("humanml3d", out, dest, split, label_texts, retarget)
 
 
-def _import(layout: str, src: Path, out: Path, split_ratio: float, seed: int) -> None:
+def _import(layout: str, src: Path, out: Path, split_ratio: float, seed: int, keep_split: bool) -> None:
     from rich.markup import escape
 
     from dualhuman_builder.export import importers
 
-    res = getattr(importers, f"import_{layout}")(src, out, split_ratio=split_ratio, seed=seed)
+    res = getattr(importers, f"import_{layout}")(src, out, split_ratio=split_ratio, seed=seed, keep_split=keep_split)
     c = res["manifest"]["counts"]
-    console.print(f"{res['layout']}: {res['imported']} sequence(s) imported ({c['train']} train, {c['test']} test), "
-                  f"{len(res['skipped'])} skipped -> {out}", highlight=False, soft_wrap=True)  # fmt: skip
+    console.print(f"{res['layout']}: {res['imported']} sequence(s) imported ({c['train']} train, {c['test']} test; "
+                  f"{res['split_from_source']} split as the source lists them), {len(res['skipped'])} skipped -> {out}",
+                  highlight=False, soft_wrap=True)  # fmt: skip
+    for note in res.get("notes", []):
+        err_console.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     for name, why in res["skipped"].items():  # names and reasons come from the source folder: never markup
         err_console.print(f"[yellow]skipped[/] {escape(repr(name))}: {escape(why)}", highlight=False, soft_wrap=True)
 
@@ -287,8 +312,12 @@ _IMPORT_OPTIONS = [
     click.argument("src", type=click.Path(file_okay=False, exists=True, path_type=Path)),
     click.argument("out", type=click.Path(file_okay=False, path_type=Path)),
     click.option("--split", "split_ratio", type=click.FloatRange(min=0.0, max=1.0, min_open=True), default=0.75,
-                 show_default=True, help="Share of sequences in the export's train split."),
+                 show_default=True, help="Share of the sequences that the source's split lists do not place (all of "
+                 "them with --draw-split) in the export's train split."),
     click.option("--seed", type=int, default=0, show_default=True, help="Seed of the split."),
+    click.option("--keep-source-split/--draw-split", "keep_split", default=True, show_default=True,
+                 help="Keep the source's train/val/test.txt as the export's split (train -> train, val and test -> "
+                 "test), or draw the split with --split and --seed."),
 ]  # fmt: skip
 
 
@@ -300,7 +329,7 @@ def _import_options(f):
 
 @export.command("import-humanml3d")
 @_import_options
-def export_import_humanml3d(src: Path, out: Path, split_ratio: float, seed: int):
+def export_import_humanml3d(src: Path, out: Path, split_ratio: float, seed: int, keep_split: bool):
     """Import a folder in HumanML3D's layout (SRC) as a dataset export in OUT, to train the
     toolkit's models on it; the inverse of `dualhuman export humanml3d`.
 
@@ -309,25 +338,26 @@ def export_import_humanml3d(src: Path, out: Path, split_ratio: float, seed: int)
       new_joints/<name>.npy  (T, 22, 3) joints, metres, Y up, 20 fps, each
                              motion in its own canonical frame
       texts/<name>.txt       caption#tokens#from#to lines (captions kept)
-      train/val/test.txt     kept per sequence in sequence.json
-                             (meta.imported_from.split)
+      train/val/test.txt     the export's split (val, test -> test;
+                             --draw-split to draw it), also kept in
+                             sequence.json (meta.imported_from.split)
 
     The export holds pairs: motions <id>_a and <id>_b (as `dualhuman export humanml3d` names them)
     become sequence <id>; any other motion is skipped as unpaired and listed. HumanML3D keeps no
     relative placement, so both persons start at the origin facing +Z. Only joints are imported:
     the export's body model is "joints-only" (no pose or shape parameters); joints, features,
-    texts and `dualhuman export verify` work as for any export. The export's own train/test split
-    is drawn with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a
+    texts and `dualhuman export verify` work as for any export. Sequences the split lists do not
+    place are split with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a
     link out of SRC) are skipped with their reason.
 
     Example:  dualhuman export import-humanml3d ~/data/HumanML3D WS/hml-export
     """
-    _import("humanml3d", src, out, split_ratio, seed)
+    _import("humanml3d", src, out, split_ratio, seed, keep_split)
 
 
 @export.command("import-interhuman")
 @_import_options
-def export_import_interhuman(src: Path, out: Path, split_ratio: float, seed: int):
+def export_import_interhuman(src: Path, out: Path, split_ratio: float, seed: int, keep_split: bool):
     """Import a folder in InterHuman's layout (SRC, InterGen's DATA_ROOT) as a dataset export in
     OUT, to train the toolkit's models on it; the inverse of `dualhuman export interhuman`.
 
@@ -338,18 +368,18 @@ def export_import_interhuman(src: Path, out: Path, split_ratio: float, seed: int
                                           joints, metres, Z up (turned
                                           to Y up)
       annots/<id>.txt                     one description per line
-      train/val/test.txt                  kept per sequence in
-                                          sequence.json (meta.imported_from)
+      train/val/test.txt                  the export's split (val, test ->
+                                          test; --draw-split to draw it)
       ignore_list.txt                     these ids are skipped
       conversion.json                     if SRC was written by `dualhuman
                                           export interhuman`: the joints go
                                           back to the original world frame
 
     person1 becomes person a, person2 person b, in their shared frame. Only joints are imported
-    (body model "joints-only": no pose or shape parameters). The export's own train/test split is
-    drawn with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a link
+    (body model "joints-only": no pose or shape parameters). Sequences the split lists do not place
+    are split with --split and --seed. Files that cannot be used (wrong shape, NaN, too large, a link
     out of SRC, person2 missing) are skipped with their reason.
 
     Example:  dualhuman export import-interhuman ~/data/InterHuman WS/ih-export
     """
-    _import("interhuman", src, out, split_ratio, seed)
+    _import("interhuman", src, out, split_ratio, seed, keep_split)

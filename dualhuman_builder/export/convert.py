@@ -89,7 +89,7 @@ Written under ``DEST``, one motion per person, named ``<id>_a`` and ``<id>_b`` (
 keys; there is no established two-person naming in this layout): ``new_joint_vecs/`` the first 263
 dims of :func:`~dualhuman_builder.export.features.motion_features` of the joints resampled to 20 fps
 (exactly HumanML3D's part; the export's 6 extra dims are dropped, so the world placement is not kept;
-no retargeting to HumanML3D's reference skeleton), ``new_joints/``, ``texts/`` (every motion gets its
+the performers' own bone lengths unless ``retarget``), ``new_joints/``, ``texts/`` (every motion gets its
 sequence's texts: they describe the pair), ``Mean.npy``/``Std.npy`` (263,) float32 over the train
 motions (HumanML3D computed them over all clips), the split lists, ``conversion.json``.
 
@@ -118,6 +118,17 @@ without text gets ``"two people interact: <label>."`` per label when ``label_tex
 export is read safely: its manifest is checked, every file read is checked against the manifest's
 SHA-256, arrays are loaded with ``allow_pickle=False``. ``DEST`` must be new, empty, or an earlier
 conversion of the same layout (whose files are then replaced).
+
+``retarget`` (``--retarget``): ``"none"`` (default) keeps the performers' bone lengths, and the output
+is byte for byte what it is without the option; ``"humanml3d"`` retargets both persons, after
+resampling, to HumanML3D's reference skeleton (:mod:`dualhuman_builder.export.retarget`: each bone's
+direction kept per frame, its length set to the reference's, the root path scaled by the leg ratio,
+the feet put back on the floor), so the features lie where HumanML3D's Mean/Std and the T2M evaluators
+expect them; every file, ``new_joints`` included, then holds the retargeted joints, which
+``recover_from_ric`` and ``recover_from_rot`` (with offsets from ``new_joints`` frame 0) rebuild.
+``conversion.json`` ``retarget`` gives the skeleton, its bone lengths and the ratios reference /
+source (min, max, mean, per bone), and each sequence's ``retarget`` the same per person.
+``"interhuman"`` raises: no published numbers give InterHuman's (SMPL neutral) skeleton.
 """
 
 from __future__ import annotations
@@ -147,6 +158,7 @@ from dualhuman_builder.export.features import (
 from dualhuman_builder.export.interhuman import (HIP_JOINTS, INTERHUMAN_FPS, PairTransform, interhuman_features,
                                                  rotations_6d_rows, rotations_from_6d_rows)  # fmt: skip
 from dualhuman_builder.export.files import MANIFEST, PERSONS, json_bytes, read_manifest, read_npz
+from dualhuman_builder.export.retarget import reference_lengths, retarget_joints, summarize
 from dualhuman_builder.fileio import atomic_open
 
 CONVERSION = "conversion.json"
@@ -331,6 +343,16 @@ def _finish(dest: Path, layout: str, root: Path, manifest: dict, split: str, fps
     return doc
 
 
+def _retarget_doc(retarget, ref: np.ndarray | None, sequences: dict) -> dict[str, Any]:
+    """``conversion.json``'s ``retarget``: the skeleton (``none``, ``humanml3d`` or ``custom``), its bone
+    lengths and the bone-length ratios (reference / source) over every converted person."""
+    if ref is None:
+        return {"skeleton": "none"}
+    reports = [r for d in sequences.values() for r in d.get("retarget", {}).values()]
+    return {"skeleton": retarget if isinstance(retarget, str) else "custom", "bone_lengths": ref[1:].tolist(),
+            **summarize(reports)}
+
+
 # ================================================================================ InterGen
 _INTERGEN_PATH_WORDS = ("person1", "person2", "motions_processed", "npy")
 
@@ -367,11 +389,15 @@ def _intergen_raw(c: np.ndarray, yaw: float = 0.0) -> np.ndarray:
     return np.concatenate([(pos @ TO_Z_UP.T).reshape(T, -1), rot.reshape(T, -1)], axis=1).astype(np.float32)
 
 
-def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True) -> dict[str, Any]:
+def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True, retarget="none") -> dict[str, Any]:
     """Write the export in ``export_dir`` in InterGen's InterHuman layout under ``dest`` (module
-    docstring: files, frames, units). Returns the ``conversion.json`` document (counts, skipped
-    sequences with reasons, per-sequence transforms). FormatError: not an export, or a file differs
-    from its manifest; ValueError: unknown split, ``dest`` not usable."""
+    docstring: files, frames, units). ``retarget``: ``"none"``, ``"humanml3d"`` or 21 bone lengths (m),
+    see :func:`~dualhuman_builder.export.retarget.reference_lengths` (``"interhuman"`` has no published
+    skeleton and raises). Returns the ``conversion.json`` document (counts, skipped sequences with
+    reasons, per-sequence transforms and bone-length ratios). FormatError: not an export, or a file
+    differs from its manifest; ValueError: unknown split, ``dest`` not usable; DualhumanError: a
+    ``retarget`` that names no usable skeleton."""
+    ref = reference_lengths(retarget)
     root, manifest, ids = _open_export(export_dir, split)
     where = str(Path(dest).absolute())
     bad = [w for w in _INTERGEN_PATH_WORDS if w in where]
@@ -399,6 +425,10 @@ def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True
             a30, b30 = resample_joints(ja, fps, INTERHUMAN_FPS), resample_joints(jb, fps, INTERHUMAN_FPS)
             if len(a30) < INTERGEN_MIN_FRAMES:
                 raise ValueError(f"{len(a30)} frames at 30 fps, InterGen needs at least {INTERGEN_MIN_FRAMES}")
+            reports = None
+            if ref is not None:
+                (a30, rep_a), (b30, rep_b) = retarget_joints(a30, ref), retarget_joints(b30, ref)
+                reports = {"a": rep_a, "b": rep_b}
             feats = interhuman_features(a30, b30, INTERHUMAN_FPS, target_fps=None)
             canon = [feats.transform.to_canonical(j) for j in (a30, b30)]
             nudge = _intergen_yaw_nudge(*canon)
@@ -419,6 +449,8 @@ def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True
         sequences[sid] = {"split": manifest["sequences"][sid].get("split"), "frames": len(a30), "text_source": source,
                           "transform": {"yaw0": tr.yaw0, "translation": list(tr.translation),
                                         "raw_yaw": nudge}}  # fmt: skip
+        if reports is not None:
+            sequences[sid]["retarget"] = reports
         feats_of[sid] = (pair[0], pair[1])
     if not sequences:
         raise ValueError(f"no sequence of {root} could be converted: {skipped}")
@@ -436,7 +468,8 @@ def to_interhuman(export_dir, dest, split: str = "all", label_texts: bool = True
     _save(dest / "global_std.npy", std)
     extra = {"stats_over": "train" if train else "all converted (no train sequence)",
              "persons": {"person1": "a", "person2": "b"},
-             "raw_yaw_turned": sorted(s for s, d in sequences.items() if d["transform"]["raw_yaw"])}  # fmt: skip
+             "raw_yaw_turned": sorted(s for s, d in sequences.items() if d["transform"]["raw_yaw"]),
+             "retarget": _retarget_doc(retarget, ref, sequences)}  # fmt: skip
     return _finish(dest, "interhuman", root, manifest, split, INTERHUMAN_FPS, split_of, sequences, skipped, extra)
 
 
@@ -467,15 +500,18 @@ def humanml3d_tokens(caption: str) -> list[str]:
 
 
 def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
-                 tokenize: Callable[[str], Sequence[str]] | None = None) -> dict[str, Any]:  # fmt: skip
+                 tokenize: Callable[[str], Sequence[str]] | None = None,
+                 retarget="none") -> dict[str, Any]:  # fmt: skip
     """Write the export in ``export_dir`` in HumanML3D's per-person layout under ``dest`` (module
     docstring). ``tokenize``: caption -> ``word/POS`` tokens (default :func:`humanml3d_tokens`).
     The vectors are recomputed from the export's joints, so dims [67:193] follow HumanML3D's rotation
     convention (:func:`~dualhuman_builder.export.features.humanml3d_rotations`) whatever the export's
     format version: its ``recover_from_rot`` rebuilds the joints given each motion's own bone lengths.
     Returns the ``conversion.json`` document; ``outside_t2m_length`` names the motions the T2M loaders
-    would skip (fewer than 40 or at least 200 rows). Errors as :func:`to_interhuman`; ValueError when
-    ``tokenize`` returns a token that is not ``word/POS``."""
+    would skip (fewer than 40 or at least 200 rows). ``retarget`` as :func:`to_interhuman`: with
+    ``"humanml3d"`` every motion has HumanML3D's reference bone lengths, as HumanML3D's own clips.
+    Errors as :func:`to_interhuman`; ValueError when ``tokenize`` returns a token that is not ``word/POS``."""
+    ref = reference_lengths(retarget)
     root, manifest, ids = _open_export(export_dir, split)
     owned = ("new_joint_vecs", "new_joints", "texts", "Mean.npy", "Std.npy", "train.txt", "val.txt", "test.txt", "all.txt")
     dest = _prepare_dest(dest, "humanml3d", owned)
@@ -503,6 +539,10 @@ def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
             j20 = [resample_joints(j, fps, HUMANML3D_FPS) for j in (ja, jb)]
             if len(j20[0]) < 2:
                 raise ValueError(f"{len(j20[0])} frame at 20 fps: too short")
+            reports = None
+            if ref is not None:
+                (ja20, rep_a), (jb20, rep_b) = (retarget_joints(j, ref) for j in j20)
+                j20, reports = [ja20, jb20], {"a": rep_a, "b": rep_b}
             f263 = [motion_features(j, HUMANML3D_FPS)[:, :HUMANML3D_DIM] for j in j20]
         except ValueError as e:
             skipped[sid] = str(e)
@@ -516,6 +556,8 @@ def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
             split_of[name], vecs[name] = seq_split, f
         sequences[sid] = {"split": seq_split, "frames": len(j20[0]), "text_source": source,
                           "motions": [f"{sid}_{p}" for p in PERSONS]}  # fmt: skip
+        if reports is not None:
+            sequences[sid]["retarget"] = reports
     if not sequences:
         raise ValueError(f"no sequence of {root} could be converted: {skipped}")
     for name, names in _split_lists(split_of).items():
@@ -525,7 +567,8 @@ def to_humanml3d(export_dir, dest, split: str = "all", label_texts: bool = True,
     _save(dest / "Mean.npy", mean)
     _save(dest / "Std.npy", std)
     extra = {"stats_over": "train" if train else "all converted (no train sequence)", "motions": len(vecs),
-             "outside_t2m_length": sorted(n for n, f in vecs.items() if not T2M_MIN_ROWS <= len(f) < T2M_MAX_ROWS)}  # fmt: skip
+             "outside_t2m_length": sorted(n for n, f in vecs.items() if not T2M_MIN_ROWS <= len(f) < T2M_MAX_ROWS),
+             "retarget": _retarget_doc(retarget, ref, sequences)}  # fmt: skip
     return _finish(dest, "humanml3d", root, manifest, split, HUMANML3D_FPS, split_of, sequences, skipped, extra)
 
 

@@ -2,8 +2,9 @@
 
 Input: 22 joints in HumanML3D order (:data:`~dualhuman_builder.body.joints.JOINT22_NAMES`),
 ``(T, 22, 3)`` world metres, +Y up, floor y = 0, a body at identity facing +Z with its left side
-towards +X (:mod:`dualhuman_builder.conventions`). No retargeting to a reference skeleton is done
-(HumanML3D rescales every clip to one subject's bone lengths; we keep the performer's own).
+towards +X (:mod:`dualhuman_builder.conventions`). The features keep the joints' own bone lengths;
+the converters can retarget to HumanML3D's reference skeleton first
+(:mod:`dualhuman_builder.export.retarget`, ``--retarget humanml3d``).
 
 Canonicalisation (per sequence, as HumanML3D): ``c = R_y(-yaw0) (w - t0)`` with
 ``t0 = (root_x(0), floor_y, root_z(0))``, ``floor_y`` the lowest joint height over the sequence and

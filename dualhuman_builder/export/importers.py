@@ -3,8 +3,9 @@
 The inverse of :mod:`dualhuman_builder.export.convert`, for a user who holds such a dataset and wants
 to train the toolkit's models on it. Only joints are read: the export's body-model arrays hold no
 body-model parameters (``body_model.name`` is :data:`JOINTS_ONLY`, zero bones and zero phenotype
-values: ``pose (T, 0, 3)``, ``shape (0,)``), ``transl`` is the root joint (pelvis), ``joints`` and
-``features`` are as in any export, so ``dualhuman export verify`` and the feature-based loaders work.
+values: ``pose (T, 0, 3)``, ``shape (0,)``; ``num_vertices`` 0, no mesh, so the body model is never
+loaded), ``transl`` is the root joint (pelvis), ``joints`` and ``features`` are as in any export, so
+``dualhuman export verify`` and the feature-based loaders work.
 
 InterHuman (:func:`import_interhuman`): ``motions_processed/person1|person2/<id>.npy`` ``(T, 492)`` at
 30 fps, columns ``[0:66]`` the 22 body joints in world metres, Z up, mapped to our Y-up axes with
@@ -21,10 +22,14 @@ sequence ``<id>`` and any other motion is skipped with the reason counted. Human
 placement: both persons of an imported pair start at the origin facing +Z.
 
 Both: the source's split lists (``train/val/test.txt``) are recorded per sequence in
-``sequence.json`` ``meta.imported_from.split``; the export's own train/test split is drawn by
-:func:`export_dataset` (``split_ratio``, ``seed``). Every file is read through
-:func:`~dualhuman_builder.fileio.read_confined` with a size cap (the folder comes from elsewhere) and
-arrays with ``allow_pickle=False``. A folder that is not in the layout raises FormatError; a file
+``sequence.json`` ``meta.imported_from.split`` and, with ``keep_split`` (the default), kept as the
+export's split (:func:`export_dataset`'s ``splits``): ``train`` stays train, ``val`` and ``test`` become
+test (the export has two splits; held-out data stays held out); a HumanML3D pair whose two motions are
+listed differently is train only when both are listed train. Sequences in no list are drawn by
+:func:`export_dataset` (``split_ratio``, ``seed``), as is everything when ``keep_split`` is off or when
+the lists would leave train empty (the feature statistics need train; the result's ``notes`` say so).
+Every file is read through :func:`~dualhuman_builder.fileio.read_confined` with a size cap (the folder
+comes from elsewhere) and arrays with ``allow_pickle=False``. A folder that is not in the layout raises FormatError; a file
 that cannot be used (wrong shape, not finite, unreadable, an id the export cannot name) is skipped
 with its reason in the returned ``skipped``.
 """
@@ -144,21 +149,42 @@ def _item(sid: str, a: np.ndarray, b: np.ndarray, fps: float, texts: list[str], 
     return ExportItem(sid, seq, subjects=("", ""))
 
 
+def _export_split(source_split) -> str | None:
+    """The export split (``train``/``test``) of a source's split name(s), None when it lists none."""
+    names = {source_split} if isinstance(source_split, str) or source_split is None else set(source_split)
+    names = {n for n in names if n}
+    if not names:
+        return None
+    return "train" if names == {"train"} else "test"
+
+
+def _source_splits(items: list[ExportItem]) -> tuple[dict[str, str], list[str]]:
+    """``(seq_id -> export split, notes)`` from the items' recorded source splits (module docstring)."""
+    given = {it.seq_id: sp for it in items if (sp := _export_split(it.sequence.meta["imported_from"].get("split")))}
+    if given and len(given) == len(items) and "train" not in given.values():
+        return {}, [("the source's split lists put no imported sequence in train (the feature statistics need one), "
+                     "so the export's split was drawn with --split and --seed")]  # fmt: skip
+    return given, []
+
+
 def _finish(root: Path, out, layout: str, items: list[ExportItem], skipped: dict[str, str],
-            progress: Callable[[str], None] | None, **export_kw) -> dict[str, Any]:  # fmt: skip
+            progress: Callable[[str], None] | None, keep_split: bool = True,
+            **export_kw) -> dict[str, Any]:  # fmt: skip
     from dualhuman_builder.export.writer import export_dataset
 
     if not items:
         raise FormatError(f"no {layout} sequence could be imported ({len(skipped)} skipped: "
                           f"{dict(sorted(skipped.items())[:5])})", path=root,
                           fix="see the reasons; at least one usable two-person motion is needed")  # fmt: skip
+    splits, notes = _source_splits(items) if keep_split else ({}, [])
     try:
-        manifest = export_dataset(items, out, progress=progress, expect=("motion",), **export_kw)
+        manifest = export_dataset(items, out, progress=progress, expect=("motion",), splits=splits, **export_kw)
     except ValueError as e:
         raise DualhumanError(str(e), path=out, fix="OUT must be new, empty, or an earlier export (updated in place); "
                              "see the message for anything else") from None  # fmt: skip
     skipped = {**skipped, **manifest.get("skipped", {})}  # the writer's own skips (features not computable)
     return {"layout": layout, "source": str(root), "imported": len(manifest["sequences"]),
+            "split_from_source": manifest["split"]["given"], "notes": notes,
             "skipped": dict(sorted(skipped.items())), "manifest": manifest}  # fmt: skip
 
 
@@ -201,11 +227,14 @@ def _to_world(joints: np.ndarray, tr: dict | None) -> np.ndarray:
     return transform.to_world(_rotate_y(joints, -raw_yaw))
 
 
-def import_interhuman(src, out, progress: Callable[[str], None] | None = None, **export_kw) -> dict[str, Any]:
+def import_interhuman(src, out, progress: Callable[[str], None] | None = None, keep_split: bool = True,
+                      **export_kw) -> dict[str, Any]:  # fmt: skip
     """Import the InterHuman folder ``src`` (module docstring) as an export in ``out`` (30 fps).
-    ``export_kw``: :func:`~dualhuman_builder.export.writer.export_dataset`'s ``split_ratio``, ``seed``, ...
-    Returns ``{layout, source, imported, skipped (name -> reason), manifest}``. FormatError: ``src`` is
-    not in the layout or nothing in it is usable; DualhumanError: ``out`` cannot be written."""
+    ``keep_split``: keep the source's split lists (module docstring); ``export_kw``:
+    :func:`~dualhuman_builder.export.writer.export_dataset`'s ``split_ratio``, ``seed``, ... (the split
+    of sequences the lists do not place). Returns ``{layout, source, imported, split_from_source (count),
+    notes, skipped (name -> reason), manifest}``. FormatError: ``src`` is not in the layout or nothing in
+    it is usable; DualhumanError: ``out`` cannot be written."""
     fix = "give InterHuman's data root: the folder holding motions_processed/person1/, person2/ and annots/"
     root = _open(src, "InterHuman", "motions_processed/person1", fix)
     if not confined_path(root, "motions_processed/person2").is_dir():
@@ -240,7 +269,7 @@ def import_interhuman(src, out, progress: Callable[[str], None] | None = None, *
             continue
         source = {"layout": "interhuman", "name": sid, "split": split_of.get(sid), "world": sid in transforms}
         items.append(_item(sid, a, b, INTERHUMAN_FPS, list(dict.fromkeys(texts)), source))
-    return _finish(root, out, "InterHuman", items, skipped, progress, **export_kw)
+    return _finish(root, out, "InterHuman", items, skipped, progress, keep_split, **export_kw)
 
 
 # ================================================================================ HumanML3D
@@ -249,7 +278,8 @@ def _captions(text: str | None) -> list[str]:
     return list(dict.fromkeys(c for c in (line.split("#", 1)[0].strip() for line in _lines(text)) if c))
 
 
-def import_humanml3d(src, out, progress: Callable[[str], None] | None = None, **export_kw) -> dict[str, Any]:
+def import_humanml3d(src, out, progress: Callable[[str], None] | None = None, keep_split: bool = True,
+                     **export_kw) -> dict[str, Any]:  # fmt: skip
     """Import the HumanML3D-layout folder ``src`` (module docstring) as an export in ``out`` (20 fps):
     motions ``<id>_a`` + ``<id>_b`` become sequence ``<id>``; others are skipped as unpaired. Returns,
     raises and takes ``export_kw`` as :func:`import_interhuman`."""
@@ -289,7 +319,7 @@ def import_humanml3d(src, out, progress: Callable[[str], None] | None = None, **
         source = {"layout": "humanml3d", "name": [pair["a"], pair["b"]],
                   "split": splits.pop() if len(splits) == 1 else sorted(s or "" for s in splits)}  # fmt: skip
         items.append(_item(sid, joints[0], joints[1], HUMANML3D_FPS, texts, source))
-    return _finish(root, out, "HumanML3D", items, skipped, progress, **export_kw)
+    return _finish(root, out, "HumanML3D", items, skipped, progress, keep_split, **export_kw)
 
 
 __all__ = ["JOINTS_ONLY", "JointsTrack", "import_humanml3d", "import_interhuman"]

@@ -78,6 +78,16 @@ def _body_model_info(seqs: list[InteractionSequence], num_vertices: int) -> dict
             "num_vertices": int(num_vertices), "bone_names": list(bones), "shape_names": list(shapes)}  # fmt: skip
 
 
+def _num_vertices(seqs: list[InteractionSequence]) -> int:
+    """The body model's vertex count; 0 when every track is known only by its joints (no bones, no
+    phenotype values: an imported dataset), which has no mesh, so the body model is not loaded."""
+    if all(not t.bone_names and not t.shape_names for s in seqs for t in s.actors):
+        return 0
+    from dualhuman_builder.body.model import get_body_model
+
+    return get_body_model().num_vertices
+
+
 def _clean_folder(folder: Path, keep: set[str]) -> None:
     """Delete files under ``folder`` whose relative path is not in ``keep``, then empty folders."""
     for p in sorted(folder.rglob("*"), reverse=True):
@@ -183,6 +193,7 @@ def export_dataset(
     progress: Callable[[str], None] | None = None,
     expect: Iterable[str] = STAGES,
     vocabulary: Vocabulary | None = None,
+    splits: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """Export ``items`` into the folder layout (:mod:`~dualhuman_builder.export.card`) under ``out_dir``;
     returns the manifest.
@@ -193,11 +204,14 @@ def export_dataset(
     it has and listed under ``incomplete``. A sequence without motion or with NaN motion is left out
     and listed under ``skipped``. ``strict=True`` turns both into a ValueError. ``progress`` gets one
     line per sequence. ``vocabulary``: the interaction labels (default: the built-in one,
-    :func:`~dualhuman_builder.labels.load_vocabulary`). Re-running completes a partial export and
-    rewrites only what changed. Errors (ValueError): duplicate or unsafe ``seq_id``, text that is
-    not UTF-8, a label outside the vocabulary, malformed contacts, a missing ``render_dir``, mixed
-    fps or body models, an ``out_dir`` that is a non-empty folder but no export, nothing
-    exportable.
+    :func:`~dualhuman_builder.labels.load_vocabulary`). ``splits``: seq_id -> ``"train"`` or ``"test"``, a
+    split given from elsewhere (an imported dataset's own lists); those sequences keep it, the others
+    are drawn as above among themselves (``subject_disjoint`` holds among the drawn ones only), and the
+    manifest's ``split.given`` counts them. Re-running completes a partial export and rewrites only what
+    changed. Errors (ValueError): duplicate or unsafe ``seq_id``, text that is not UTF-8, a label outside
+    the vocabulary, malformed contacts, a missing ``render_dir``, mixed fps or body models, an
+    ``out_dir`` that is a non-empty folder but no export, ``splits`` naming an unknown sequence or split,
+    a train split left empty, nothing exportable.
     """
     say = progress or (lambda _msg: None)
     expect = tuple(expect)
@@ -213,6 +227,13 @@ def export_dataset(
     dup = sorted({s for s in ids if ids.count(s) > 1})
     if dup:
         raise ValueError(f"duplicate seq_id {dup}: every sequence needs its own id")
+    splits = dict(splits or {})
+    unknown = sorted(str(s) for s in set(splits) - set(ids))
+    if unknown:
+        raise ValueError(f"splits names sequences that are not exported: {unknown[:5]}")
+    wrong = {s: v for s, v in splits.items() if v not in ("train", "test")}
+    if wrong:
+        raise ValueError(f"splits must map each sequence to 'train' or 'test', got {dict(list(wrong.items())[:5])}")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out} exists and is not a folder")
@@ -238,9 +259,7 @@ def export_dataset(
         raise ValueError(f"no sequence can be exported: {skipped}")
     fps = float(fps_set[0])
 
-    from dualhuman_builder.body.model import get_body_model
-
-    body = _body_model_info([p.item.sequence for p in good], get_body_model().num_vertices)
+    body = _body_model_info([p.item.sequence for p in good], _num_vertices([p.item.sequence for p in good]))
     for p in good:
         if p.contacts is not None and p.contacts["labels"].shape[2] != body["num_vertices"]:
             raise ValueError(f"sequence {p.item.seq_id!r}: contacts have {p.contacts['labels'].shape[2]} vertices, "
@@ -286,8 +305,11 @@ def export_dataset(
     if not docs:
         raise ValueError(f"no sequence could be exported: {skipped}")
 
-    subjects = {sid: tuple(d["subjects"]) for sid, d in docs.items()}
+    given = {sid: s for sid, s in splits.items() if sid in docs}
+    subjects = {sid: tuple(d["subjects"]) for sid, d in docs.items() if sid not in given}
     train, test = make_splits(subjects, split_ratio, subject_disjoint, seed)
+    train = sorted(train + [sid for sid, s in given.items() if s == "train"])
+    test = sorted(test + [sid for sid, s in given.items() if s == "test"])
     if not train:
         raise ValueError("the train split is empty; nothing to compute feature statistics from")
     mean, std = feature_stats([f for sid in train for f in features[sid]])
@@ -328,7 +350,7 @@ def export_dataset(
         "feature_dim": FEATURE_DIM,
         "vocabulary": {"file": LABELS_JSON, "size": len(vocabulary)},
         "split": {"ratio": float(split_ratio), "seed": int(seed), "subject_disjoint": bool(subject_disjoint),
-                  "files": {"train": "splits/train.txt", "test": "splits/test.txt"}},  # fmt: skip
+                  "given": len(given), "files": {"train": "splits/train.txt", "test": "splits/test.txt"}},  # fmt: skip
         "stats": {"mean": "stats/mean.npy", "std": "stats/std.npy", "over": "train features, both persons"},
         "counts": {
             "sequences": len(docs), "train": len(train), "test": len(test),
