@@ -1,10 +1,11 @@
 """``sim://`` — the simulated studio as an in-process source (no transport; the fast path for tests).
 
-``sim://TYPE?seed=N[&fps=30][&tempo=1][&duration=S][&approach=M][&devices=N]``
+``sim://TYPE?seed=N[&fps=30][&tempo=1][&duration=S][&approach=M][&devices=N][&preset=ideal]``
     generates the ground-truth scene ``TYPE`` (:data:`~dualhuman_builder.sim.scenes.SCENE_TYPES`)
     with ``seed`` and yields every simulated device's samples in host receive-time order, decoded,
-    in-process. ``devices`` seeds the device errors (default: the scene seed).
-``sim:///PATH/TO/SCENE.npz[?devices=N]``
+    in-process. ``devices`` seeds the device errors (default: the scene seed); ``preset`` chooses
+    them (:data:`~dualhuman_builder.sim.presets.PRESETS`: ``ideal``, the default, or ``realistic``).
+``sim:///PATH/TO/SCENE.npz[?devices=N][&preset=realistic]``
     the same from a scene saved by ``dualhuman scene make``.
 
 The scheme is registered into capture's source registry through the ``dualhuman_builder.sources``
@@ -29,7 +30,7 @@ class SimSource(Source):
     :class:`~dualhuman_builder.sim.studio.SimStudio` whose samples are yielded."""
 
     kind = "sim"
-    PARAMS = ("seed", "fps", "tempo", "duration", "approach", "devices")
+    PARAMS = ("seed", "fps", "tempo", "duration", "approach", "devices", "preset")
     PLAYS_STUDIO = True
 
     @classmethod
@@ -42,11 +43,16 @@ class SimSource(Source):
         return LoopbackStudio(url, sim.scene, sim.studio, speed=speed, faults=faults, progress=progress)
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
+        from dualhuman_builder.sim.presets import PRESETS
         from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene
         from dualhuman_builder.sim.studio import simulate_studio
 
         super().__init__(url)
         parts, query = parse_source_url(url, self.PARAMS)
+        preset = query.get("preset", "ideal")
+        if preset not in PRESETS:
+            raise SourceError(f"unknown device error preset {preset!r} in {url!r}",
+                              fix=f"write preset={' or preset='.join(PRESETS)}")  # fmt: skip
         if parts.netloc:
             if parts.netloc not in ALL_TYPES:
                 raise SourceError(f"unknown scene type {parts.netloc!r} in {url!r}",
@@ -69,7 +75,8 @@ class SimSource(Source):
             raise SourceError(f"{url!r} names neither a scene type nor a scene file",
                               fix="write sim://handshake?seed=3 or sim:///path/to/scene.npz")  # fmt: skip
         seed = number_param(query, "devices", int, self.scene.params.seed)
-        self.studio = simulate_studio(self.scene.sequence, seed=seed, progress=progress)
+        self.studio = simulate_studio(self.scene.sequence, seed=seed, progress=progress, preset=preset,
+                                      contacts=None if preset == "ideal" else self.scene.distances)  # fmt: skip
 
     def read(self, timeout: float) -> list[RawPacket]:
         raise SourceError("sim:// runs in-process and has no raw packets to read",

@@ -11,7 +11,9 @@ Artifacts (under ``WS/artifacts/TAKE/SEQUENCE/<stage>/``):
   bodies at the contact, coloured), ``preview.png`` (a Mitsuba still) and ``strip.png`` (six
   moments, ground-truth contact vertices painted yellow);
 * ``devices``: ``devices.json`` (samples per stream, rates, and the errors the simulators realised:
-  clock offsets and drifts, suit drift, tracker losses).
+  clock offsets and drifts, suit drift, tracker losses; the device error ``preset`` and ``drawn``,
+  every parameter the preset drew for the take, :func:`~dualhuman_builder.sim.presets.draw_device_errors`:
+  for evaluation only, never read by sync or fit).
 
 The ``capture`` stage then records the scene's simulated studio through real loopback transports
 (``sim://SCENE.npz?devices=SEED``, :mod:`dualhuman_builder.capture.stage`).
@@ -92,21 +94,43 @@ def run_scene(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple
                         version=str(GENERATOR_VERSION), force=force)  # fmt: skip
 
 
-def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, log: Callable[[str], None] = print):
+def run_devices(ws, take: str, sequence: str, seed: int, force: bool = False, log: Callable[[str], None] = print,
+                preset: str = "ideal"):  # fmt: skip
     """The ``devices`` stage: the simulated studio of the sequence's scene with device seed
-    ``seed`` (:func:`~dualhuman_builder.sim.studio.simulate_studio`), summarised. Returns the StageResult."""
+    ``seed`` and device error ``preset`` (:func:`~dualhuman_builder.sim.studio.simulate_studio`),
+    summarised. Returns the StageResult."""
+    from dualhuman_builder.sim.presets import check_preset
+
+    check_preset(preset)
 
     def compute(out):
         from dualhuman_builder.sim.studio import simulate_studio
 
         sc = load_scene(ws, take, sequence)
-        summary = studio_summary(simulate_studio(sc.sequence, seed=seed, progress=log))
+        contacts = None if preset == "ideal" else sc.distances
+        studio = simulate_studio(sc.sequence, seed=seed, progress=log, preset=preset, contacts=contacts)
+        summary = studio_summary(studio)
         with open(out.path(DEVICES_FILE), "w") as f:
             json.dump(summary, f, indent=2)
-        return {"samples": sum(summary["samples"].values())}
+        return {"samples": sum(summary["samples"].values()), "preset": preset}
 
-    return ws.run_stage(DEVICES, compute, take=take, sequence=sequence, params={"seed": seed},
+    return ws.run_stage(DEVICES, compute, take=take, sequence=sequence, params=_device_params(seed, preset),
                         depends_on=[("scene", sequence)], force=force)  # fmt: skip
+
+
+def _device_params(seed: int, preset: str, **more) -> dict:
+    """Stage parameters of a take's devices: the ``ideal`` preset leaves them as they were without
+    one, so takes made before presets existed stay up to date."""
+    return {"seed": seed, **more} if preset == "ideal" else {"seed": seed, "preset": preset, **more}
+
+
+def device_url(scene_path, seed: int, preset: str = "ideal") -> str:
+    """The ``sim://`` URL that plays the scene file ``scene_path`` with device seed ``seed`` and
+    ``preset``."""
+    from pathlib import Path
+
+    url = f"sim://{Path(scene_path).resolve()}?devices={seed}"
+    return url if preset == "ideal" else f"{url}&preset={preset}"
 
 
 def load_scene(ws, take: str, sequence: str):
@@ -119,15 +143,17 @@ def load_scene(ws, take: str, sequence: str):
 
 def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]],
                   shapes: Sequence[dict], *, speed: float = 1.0, model=None, force: bool = False,
-                  log: Callable[[str], None] = print) -> dict:  # fmt: skip
+                  log: Callable[[str], None] = print, preset: str = "ideal") -> dict:  # fmt: skip
     """Register ``take`` (rig ``sim``, the ``actors``) with its one ``sequence`` if new, then run
     its ``scene``, ``devices`` and ``capture`` stages: a generated scene, its simulated devices
-    (device seed ``params["seed"]``), and their recording through real loopback transports at
-    ``speed`` times real time. The take's ``sync``, ``fuse`` and ``fit`` stages then read that
-    recording. Returns ``{stage: StageResult}``."""
+    (device seed ``params["seed"]``, device error ``preset``), and their recording through real
+    loopback transports at ``speed`` times real time. The take's ``sync``, ``fuse`` and ``fit``
+    stages then read that recording. Returns ``{stage: StageResult}``."""
     from dualhuman_builder.capture.stage import run_capture
+    from dualhuman_builder.sim.presets import check_preset
     from dualhuman_builder.sim.scenes import NATURAL_DURATION
 
+    check_preset(preset)
     calibration = params["type"] == "calibration"
     if take not in ws.takes():
         ws.add_take(take, rig="sim", actors=[a[0] for a in actors], meta={"simulated": True, "calibration": calibration})
@@ -135,10 +161,11 @@ def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[t
         seconds = params.get("duration") or NATURAL_DURATION[params["type"]]
         ws.add_sequence(take, sequence, 0, int(round(seconds * params["fps"])), labels=(params["type"],))
     results = {"scene": run_scene(ws, take, sequence, params, actors, shapes, model=model, force=force, log=log)}
-    results["devices"] = run_devices(ws, take, sequence, params["seed"], force=force, log=log)
+    results["devices"] = run_devices(ws, take, sequence, params["seed"], force=force, log=log, preset=preset)
     scene_path = SCENE.artifact(ws, take, SCENE_FILE, sequence)
-    url = f"sim://{scene_path.resolve()}?devices={params['seed']}"
-    results["capture"] = run_capture(ws, take, sequence, url, speed=speed, params={"seed": params["seed"], "speed": speed},
+    url = device_url(scene_path, params["seed"], preset)
+    results["capture"] = run_capture(ws, take, sequence, url, speed=speed,
+                                     params=_device_params(params["seed"], preset, speed=speed),
                                      depends_on=[("scene", sequence)], force=force, log=log)  # fmt: skip
     return results
 
@@ -158,8 +185,15 @@ def studio_summary(studio) -> dict:
     clocks = {name: {"offset_s": c.offset_s, "drift_ppm": c.drift_ppm}
               for name, c in [("suits", studio.suits[0].clock), ("trackers", studio.trackers[0].clock),
                               *((f"imu/{k}", v.clock) for k, v in studio.imus.items())]}  # fmt: skip
-    return {"samples": studio.counts(), "suits": suits, "trackers": trackers, "clocks": clocks,
-            "imus": {k: {"segment": v.segment, "rate_hz": v.rate_hz} for k, v in studio.imus.items()}}  # fmt: skip
+    out = {"samples": studio.counts(), "suits": suits, "trackers": trackers, "clocks": clocks,
+           "imus": {k: {"segment": v.segment, "rate_hz": v.rate_hz} for k, v in studio.imus.items()}}  # fmt: skip
+    if studio.devices is not None:
+        for s in studio.suits:
+            lost_s = float(np.sum(s.dropout_stop_ns - s.dropout_start_ns)) * 1e-9
+            suits[f"suit/{s.character}"].update({"dropouts": int(len(s.dropout_start_ns)), "dropout_s": round(lost_s, 3)})
+        out["preset"] = studio.devices.preset
+        out["drawn"] = studio.devices.drawn
+    return out
 
 
 def write_scene_views(model, sc, out) -> dict:

@@ -53,7 +53,8 @@ def test_sim_source_yields_every_device_in_arrival_order(source):
 def test_sim_source_errors_and_scene_files(tmp_path, source):
     for url, match in (("sim://waltz?seed=1", "unknown scene type"), ("sim://handshake?sed=1", "unknown sim:// parameter"),
                        ("sim://handshake?seed=x", "not an int"), ("sim:///nope/scene.npz", "no scene file"),
-                       ("mvn+udp://127.0.0.1:99999", "bad port"), ("sim://handshake?duration=1", "too short"), ("ftp://x", "unknown source scheme")):  # fmt: skip
+                       ("mvn+udp://127.0.0.1:99999", "bad port"), ("sim://handshake?duration=1", "too short"), ("ftp://x", "unknown source scheme"),
+                       ("sim://handshake?preset=noisy", "unknown device error preset")):  # fmt: skip
         with pytest.raises(SourceError, match=match):
             open_source(url)
     path = source.scene.save(tmp_path / "scene.npz")
