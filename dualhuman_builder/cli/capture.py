@@ -12,16 +12,21 @@ from dualhuman_builder.cli.app import console, err_console, main
 
 @main.command("import")
 @click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
-@click.argument("file", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.argument("files", nargs=-1, required=True, metavar="FILE...",
+                type=click.Path(dir_okay=False, exists=True, path_type=Path))  # fmt: skip
 @click.option("--take", default=None,
               help="Take name (default: a .mcap file's recorded take name; else the file name without its suffix, made safe).")
-@click.option("--actor", default=None, help="MVNX/BVH: a registered actor who wears the suit (`dualhuman actor add`).")
+@click.option("--actor", "actors", multiple=True,
+              help="MVNX/BVH: a registered actor who wears the suit (`dualhuman actor add`); with several MVNX files, "
+                   "one --actor per file, in order.")  # fmt: skip
 @click.option("--scale", type=float, default=None, help="BVH only: file units to metres (default: detected, m/cm/mm).")
 @click.option("--z-up", is_flag=True, help="BVH only: the file is Z-up (BVH is usually Y-up).")
-def import_(workspace: Path, file: Path, take: str | None, actor: str | None, scale: float | None, z_up: bool):
+def import_(workspace: Path, files: tuple[Path, ...], take: str | None, actors: tuple[str, ...], scale: float | None,
+            z_up: bool):  # fmt: skip
     """Import a recorded FILE into WORKSPACE as a take: an Xsens MVN XML export (.mvnx, read
     streaming; calibration poses and every per-frame array kept), a Biovision .bvh, or a take file
-    recorded by `dualhuman capture` (.mcap).
+    recorded by `dualhuman capture` (.mcap). Several .mvnx files (MVN exports one subject per file)
+    of one recording make one take of several suits, in order.
 
     MVNX and BVH: the file is copied into WORKSPACE/takes/<take>/ next to the skeleton track read
     from it (skeleton.npz, Y-up metres), and the take is registered with checksums.
@@ -34,18 +39,24 @@ def import_(workspace: Path, file: Path, take: str | None, actor: str | None, sc
     \b
     Examples:
       dualhuman import WS take3.mvnx --actor alice
+      dualhuman import WS alice.mvnx bob.mvnx --take T1 --actor alice --actor bob
       dualhuman import WS WS/takes/T001/T001.mcap
     """
     from rich.markup import escape
 
-    from dualhuman_builder.capture.importers import import_file
+    from dualhuman_builder.capture.importers import import_files
     from dualhuman_builder.workspace import Workspace
     from dualhuman_builder.workspace.workspace import printable
 
+    if len(files) > 1 and any(f.suffix.lower() != ".mvnx" for f in files):
+        raise click.UsageError("several files make one take only when every one is an .mvnx export")
+    if len(actors) > len(files):
+        raise click.UsageError(f"{len(actors)} --actor for {len(files)} file(s): give one per file, in order")
+    file = files[0]
     if file.suffix.lower() == ".mcap":
         from dualhuman_builder.capture.stage import register_take_file
 
-        if actor is not None or scale is not None or z_up:
+        if actors or scale is not None or z_up:
             raise click.UsageError("--actor, --scale and --z-up apply to .mvnx and .bvh files; a take file names its actors")
         with Workspace.open(workspace) as ws:
             with console.status(f"checking {file.name}..."):
@@ -63,9 +74,17 @@ def import_(workspace: Path, file: Path, take: str | None, actor: str | None, sc
         console.print(escape(f"  file: {ws.root / t.files[0]['path']}"), highlight=False, soft_wrap=True)
         return
     with Workspace.open(workspace) as ws:
-        with console.status(f"reading {file.name}...") as spinner:
-            r = import_file(ws, file, take=take, actor=actor, scale=scale, up="z" if z_up else "y",
-                            progress=lambda m: spinner.update(m))  # fmt: skip
+        with console.status(f"reading {', '.join(f.name for f in files)}...") as spinner:
+            results = import_files(ws, files, take=take, actors=list(actors) + [None] * (len(files) - len(actors)),
+                                   scale=scale, up="z" if z_up else "y", progress=lambda m: spinner.update(m))  # fmt: skip
+    for file, r in zip(files, results):
+        _print_import(file, r)
+
+
+def _print_import(file: Path, r) -> None:
+    """What one imported file gave (an :class:`~dualhuman_builder.capture.importers.ImportResult`)."""
+    from rich.markup import escape
+
     console.print(f"imported {file.name} as take {r.take!r}: {r.frames:,} frames at {r.fps:g} fps "
                   f"({r.duration_s:.2f} s), {r.segments} segments", highlight=False, soft_wrap=True)  # fmt: skip
     if r.format == "mvnx":

@@ -32,11 +32,34 @@ class ActorInput:
     trk_segment: np.ndarray  # (K,) the MVN segment each tracker is mounted on
     trk_offset: np.ndarray  # (K, 3) the tracker's offset in its segment's frame (m)
     ankles: np.ndarray  # (T, 2, 3) fused LeftFoot, RightFoot origins (m; stance detection)
+    #: (23,) trust in each MVN segment's orientation, 1 measured, 0 where no sensor measured it (the legs of an
+    #: upper-body MVN recording: a fixed pose, not the actor's); None: every segment measured
+    segment_weight: np.ndarray | None = None
+
+    @property
+    def unmeasured(self) -> tuple[str, ...]:
+        """The MVN segments whose :attr:`segment_weight` is 0."""
+        if self.segment_weight is None:
+            return ()
+        return tuple(g for g, w in zip(MVN_SEGMENTS, self.segment_weight) if w == 0)
 
 
-def inputs_from_fused(fused: list, shapes: dict[str, dict]) -> list[ActorInput]:
+def segment_weights(unmeasured) -> np.ndarray | None:
+    """``(23,)`` :attr:`ActorInput.segment_weight` (MVN order): 0 for each segment named in ``unmeasured``,
+    1 elsewhere; None when it names none. A name that is no MVN segment raises :class:`FitError`."""
+    unmeasured = tuple(unmeasured or ())
+    if not unmeasured:
+        return None
+    unknown = [g for g in unmeasured if g not in MVN_SEGMENTS]
+    if unknown:
+        raise FitError(f"unmeasured segments {unknown} are not MVN segments")
+    return np.array([0.0 if g in unmeasured else 1.0 for g in MVN_SEGMENTS])
+
+
+def inputs_from_fused(fused: list, shapes: dict[str, dict], unmeasured: dict | None = None) -> list[ActorInput]:
     """:class:`ActorInput` per :class:`~dualhuman_builder.fit.fuse.FusedActor`; ``shapes``: actor name ->
-    anny phenotype."""
+    anny phenotype; ``unmeasured``: actor name -> the MVN segments no sensor measured
+    (:func:`segment_weights`; the sync report's ``imported`` says which for an imported take)."""
     out = []
     lf, rf = MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")
     for f in fused:
@@ -45,5 +68,6 @@ def inputs_from_fused(fused: list, shapes: dict[str, dict]) -> list[ActorInput]:
         out.append(ActorInput(name=sk.actor, shape=shapes[sk.actor], seg_rot=np.asarray(sk.orientations),
                               pelvis=np.asarray(sk.positions[:, 0]), valid=valid, trk_pos=f.trk_pos, trk_valid=f.trk_valid,
                               trk_segment=f.trk_segment, trk_offset=f.trk_offset,
-                              ankles=np.asarray(sk.positions[:, [lf, rf]])))  # fmt: skip
+                              ankles=np.asarray(sk.positions[:, [lf, rf]]),
+                              segment_weight=segment_weights((unmeasured or {}).get(sk.actor))))  # fmt: skip
     return out

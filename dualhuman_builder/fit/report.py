@@ -27,7 +27,7 @@ import io
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -633,6 +633,7 @@ def write_fit_report(
     summary: dict,
     png_path: Path | None = None,
     png_size: tuple[int, int] = (1200, 800),
+    flags: Sequence[str] = (),
 ) -> Path:
     """Write the fit report for ``take`` to ``path_html`` (one self-contained HTML file) and return it.
 
@@ -642,8 +643,10 @@ def write_fit_report(
     the sync stage's JSON report (``reference``, ``clocks``, ``lags``, ``mounts``, ``warnings``; any
     key may be missing, extra keys are listed as key/value rows). ``summary`` holds headline numbers
     (flat or nested dict) shown first. With ``png_path``, also writes a ``png_size`` (width, height)
-    pixel PNG with the same charts stacked. Parent folders are created; files are replaced
-    atomically. Raises ValueError on malformed input, naming the offending chart / line / argument.
+    pixel PNG with the same charts stacked. ``flags``: sentences on what the data could not give (no
+    trackers, segments no sensor measured), listed under "Data limits" before the summary. Parent
+    folders are created; files are replaced atomically. Raises ValueError on malformed input, naming
+    the offending chart / line / argument.
     """
     if not isinstance(take, str) or not take:
         raise ValueError(f"take must be a non-empty string, got {take!r}")
@@ -683,6 +686,11 @@ def write_fit_report(
         f'<p class="meta">{n_frames} frames at {_esc(f"{fps:g}")} fps ({n_frames / fps:.1f} s), '
         f"{len(charts)} chart(s)</p>"
     )
+    if isinstance(flags, str) or any(not isinstance(f, str) for f in flags):
+        raise ValueError(f"flags must be a list of sentences, got {flags!r}")
+    if flags:
+        items = "".join(f"<li>{_esc(f)}</li>" for f in flags)
+        body.append(f'<h2 id="limits">Data limits</h2><ul class="warn">{items}</ul>')
     body.append("<h2>Summary</h2>" + _kv_table(summary))
     warnings = sync.get("warnings")
     if isinstance(warnings, (list, tuple)) and warnings:

@@ -8,6 +8,10 @@
   rotations relative to each segment's parent, bone offsets from one reference frame.
 * :func:`mvnx_arrays_from_suit` — the per-frame arrays of a real MVNX export, computed from a
   simulated :class:`~dualhuman_builder.sim.suit.SuitStream` and its ground truth.
+* :func:`upper_body_track` / :func:`upper_body_arrays` — what MVN reports in its upper-body
+  configuration (no leg sensors): the legs in a fixed pose that follows the pelvis.
+* :func:`write_actor_mvnx` — one actor of a scene as the MVNX file MVN would export of its suit, in
+  the ``FullBody`` or an ``UpperBody`` configuration, with calibration poses.
 
 Both writers are crash-safe (:func:`~dualhuman_builder.fileio.atomic_open`).
 """
@@ -23,9 +27,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dualhuman_builder.body.mapping import MVN_PARENTS, MVN_SEGMENTS
-from dualhuman_builder.capture.importers.mvnx import (CALIBRATION_TYPES, FRAME_FIELD_ORDER, MVNX_NAMESPACE,
-                                                      QUAT_FIELDS, VECTOR_FIELDS, quat_file_to_ours,
-                                                      quat_ours_to_file, vec_file_to_ours,
+from dualhuman_builder.capture.importers.mvnx import (CALIBRATION_TYPES, FRAME_FIELD_ORDER, LEG_SEGMENTS,
+                                                      MVNX_NAMESPACE, QUAT_FIELDS, VECTOR_FIELDS, quat_file_to_ours,
+                                                      quat_ours_to_file, unmeasured_segments, vec_file_to_ours,
                                                       vec_ours_to_file)  # fmt: skip
 from dualhuman_builder.fileio import atomic_open
 from dualhuman_builder.tracks import SkeletonTrack
@@ -42,6 +46,10 @@ MVN_JOINT_LABELS = {
 
 #: Foot contact points, in the order of MVNX ``footContacts``.
 FOOT_CONTACTS = ("LeftFoot_Heel", "LeftFoot_Toe", "RightFoot_Heel", "RightFoot_Toe")
+
+#: The sensors of MVN's upper-body configuration: the full suit's without the six on the legs.
+UPPER_BODY_SENSORS = ("Pelvis", "T8", "Head", "RightShoulder", "RightUpperArm", "RightForeArm", "RightHand",
+                      "LeftShoulder", "LeftUpperArm", "LeftForeArm", "LeftHand")  # fmt: skip
 
 #: Ergonomic joint angles (labels in MVN's style: reference_segment).
 ERGONOMIC_JOINTS = ("T8_Head", "T8_LeftUpperArm", "T8_RightUpperArm", "Pelvis_T8", "Vertical_Pelvis", "Vertical_T8")
@@ -250,12 +258,7 @@ def mvnx_arrays_from_suit(stream) -> dict[str, np.ndarray]:
     sensor_q = (Rotation.from_quat(stream.orientations[:, sidx].reshape(-1, 4))
                 * Rotation.from_quat(np.tile(stream.sensor_mount, (T, 1)))).as_quat().reshape(T, -1, 4)  # fmt: skip
     quat = stream.orientations
-    angles, angles_xzy = [], []
-    for c, name in enumerate(MVN_SEGMENTS[1:], start=1):
-        p = MVN_SEGMENTS.index(MVN_PARENTS[name])
-        local = Rotation.from_quat(quat[:, p]).inv() * Rotation.from_quat(quat[:, c])
-        angles.append(local.as_euler("ZXY", degrees=True))
-        angles_xzy.append(local.as_euler("XZY", degrees=True))
+    angles, angles_xzy = _joint_angles(quat)
     ergo_pairs = [("T8", "Head"), ("T8", "LeftUpperArm"), ("T8", "RightUpperArm"), ("Pelvis", "T8")]
     ergo = [(Rotation.from_quat(quat[:, MVN_SEGMENTS.index(a)]).inv()
              * Rotation.from_quat(quat[:, MVN_SEGMENTS.index(b)])).as_euler("ZXY", degrees=True) for a, b in ergo_pairs]  # fmt: skip
@@ -272,9 +275,118 @@ def mvnx_arrays_from_suit(stream) -> dict[str, np.ndarray]:
         "sensorFreeAcceleration": np.asarray(truth.acceleration[:, sidx]),
         "sensorMagneticField": np.asarray(stream.sensor_mag),
         "sensorOrientation": sensor_q,
-        "jointAngle": np.stack(angles, 1), "jointAngleXZY": np.stack(angles_xzy, 1),
+        "jointAngle": angles, "jointAngleXZY": angles_xzy,
         "jointAngleErgo": np.stack(ergo, 1), "centerOfMass": com,
     }  # fmt: skip
+
+
+def _joint_angles(quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``jointAngle`` and ``jointAngleXZY`` ``(T, 22, 3)`` degrees of MVN-ordered orientations ``quat (T, 23, 4)``:
+    each segment relative to its parent, Euler ZXY and XZY."""
+    angles, angles_xzy = [], []
+    for c, name in enumerate(MVN_SEGMENTS[1:], start=1):
+        p = MVN_SEGMENTS.index(MVN_PARENTS[name])
+        local = Rotation.from_quat(quat[:, p]).inv() * Rotation.from_quat(quat[:, c])
+        angles.append(local.as_euler("ZXY", degrees=True))
+        angles_xzy.append(local.as_euler("XZY", degrees=True))
+    return np.stack(angles, 1), np.stack(angles_xzy, 1)
+
+
+def _pelvis_heading(quat: np.ndarray) -> Rotation:
+    """``(T,)`` rotations about the vertical (+Y) by the pelvis's change of heading since the first frame
+    (the twist about Y of its rotation since then); ``quat (T, 4)`` the pelvis's orientations."""
+    d = (Rotation.from_quat(quat) * Rotation.from_quat(quat[0]).inv()).as_quat()
+    yaw = 2.0 * np.arctan2(d[:, 1], d[:, 3])
+    return Rotation.from_rotvec(np.outer(yaw, [0.0, 1.0, 0.0]))
+
+
+def upper_body_track(track: SkeletonTrack) -> SkeletonTrack:
+    """What MVN reports of ``track`` (the 23 MVN segments) in its upper-body configuration, where no sensor
+    is on the legs: the pelvis and everything above it as in ``track``; each leg segment
+    (:data:`~dualhuman_builder.capture.importers.mvnx.LEG_SEGMENTS`) held in its first frame's pose relative
+    to the pelvis, carried along with the pelvis's position and heading (it turns about the vertical with
+    the pelvis, never bends). A standing actor's legs then look right and any step or knee bend is lost."""
+    if tuple(track.segment_names) != tuple(MVN_SEGMENTS):
+        raise ValueError("upper_body_track needs the 23 MVN segments in MVN order")
+    quat, pos = np.array(track.orientations, dtype=np.float64), np.array(track.positions, dtype=np.float64)
+    heading = _pelvis_heading(quat[:, 0])
+    for g in LEG_SEGMENTS:
+        i = MVN_SEGMENTS.index(g)
+        quat[:, i] = (heading * Rotation.from_quat(np.tile(quat[0, i], (len(quat), 1)))).as_quat()
+        pos[:, i] = pos[:, 0] + heading.apply(pos[0, i] - pos[0, 0])
+    meta = {**track.meta, "configuration": "UpperBody"}
+    return SkeletonTrack(track.segment_names, quat, pos, track.device_time_ns, track.host_time_ns, actor=track.actor,
+                         fps=track.fps, orientation_valid=track.orientation_valid, position_valid=track.position_valid,
+                         meta=meta)  # fmt: skip
+
+
+def upper_body_arrays(arrays: Mapping[str, np.ndarray], track: SkeletonTrack) -> dict[str, np.ndarray]:
+    """The per-frame arrays of :func:`mvnx_arrays_from_suit` as MVN writes them in the upper-body
+    configuration of ``track`` (:func:`upper_body_track`'s): sensor arrays of the upper-body sensors only
+    (:data:`UPPER_BODY_SENSORS`), the legs' velocities and accelerations the pelvis's (they move with
+    it), joint angles of the track's own orientations, no ``footContacts`` (no foot is measured)."""
+    from dualhuman_builder.sim.suit import MVN_SENSOR_SEGMENTS
+
+    out = {k: np.array(v) for k, v in arrays.items() if k != "footContacts"}
+    keep = [MVN_SENSOR_SEGMENTS.index(s) for s in UPPER_BODY_SENSORS]
+    for name in ("sensorFreeAcceleration", "sensorMagneticField", "sensorOrientation"):
+        if name in out:
+            out[name] = out[name][:, keep]
+    legs = [MVN_SEGMENTS.index(g) for g in LEG_SEGMENTS]
+    for name in ("velocity", "acceleration", "angularVelocity", "angularAcceleration"):
+        if name in out:
+            out[name][:, legs] = out[name][:, :1]
+    if "jointAngle" in out or "jointAngleXZY" in out:
+        out["jointAngle"], out["jointAngleXZY"] = _joint_angles(np.asarray(track.orientations))
+    return out
+
+
+def write_actor_mvnx(path: str | Path, body, *, configuration: str = "FullBody", rate_hz: float = 60.0, seed: int = 0,
+                     character: int = 0, label: str | None = None, start_epoch_ms: int = 1_700_000_000_000):  # fmt: skip
+    """Write the MVNX file MVN would export of one actor's suit; returns ``(path, suit, track)``: the
+    :class:`~dualhuman_builder.sim.suit.SuitStream` simulated from ``body`` and the
+    :class:`SkeletonTrack` written (its times from 0, as an export's).
+
+    ``body``: the actor's ground truth, a :class:`~dualhuman_builder.tracks.BodyTrack` (e.g.
+    ``scene.sequence.actors[i]``) or its MVN :class:`SkeletonTrack`; the suit is simulated at ``rate_hz``
+    with ``seed`` and ``character`` (:func:`~dualhuman_builder.sim.suit.simulate_suit`).
+    ``configuration``: MVN's suit configuration (the subject's ``configuration`` attribute); ``FullBody``
+    writes every segment and the 17 sensors as measured, an upper-body one (``UpperBody``,
+    ``UpperBodyNoHands``...) the legs in MVN's fixed pose (:func:`upper_body_track`) and the sensors and
+    arrays of that configuration (:func:`upper_body_arrays`). Calibration poses: ``identity``
+    (:func:`identity_pose`) and ``tpose`` (the first frame's pose, standing in for the calibration)."""
+    from dualhuman_builder.sim.groundtruth import segment_kinematics
+    from dualhuman_builder.sim.kinematics import KinematicSpline
+    from dualhuman_builder.sim.suit import MVN_SENSOR_SEGMENTS, simulate_suit
+
+    unmeasured = unmeasured_segments(configuration)
+    if unmeasured is None:
+        raise ValueError(f"unknown MVN configuration {configuration!r}")
+    upper = bool(unmeasured) and set(LEG_SEGMENTS) <= set(unmeasured)
+    if unmeasured and not upper:
+        raise ValueError(f"write_actor_mvnx writes FullBody and UpperBody configurations, not {configuration!r}")
+    skeleton = body if isinstance(body, SkeletonTrack) else segment_kinematics(body)
+    suit = simulate_suit(KinematicSpline(skeleton), character=character, rate_hz=rate_hz, seed=seed)
+    reported = suit.to_track()
+    t = np.asarray(reported.device_time_ns) - int(reported.device_time_ns[0])
+    track = SkeletonTrack(reported.segment_names, reported.orientations, reported.positions, t, t,
+                          actor=label or body.actor or "subject", fps=rate_hz, meta=dict(reported.meta))  # fmt: skip
+    arrays = mvnx_arrays_from_suit(suit)
+    sensors, contacts = MVN_SENSOR_SEGMENTS, FOOT_CONTACTS
+    if upper:
+        track = upper_body_track(track)
+        arrays = upper_body_arrays(arrays, track)
+        sensors = tuple(s for s in UPPER_BODY_SENSORS if not (s in unmeasured))
+        if len(sensors) != len(UPPER_BODY_SENSORS):  # no hand sensors: their arrays go with them
+            keep = [UPPER_BODY_SENSORS.index(s) for s in sensors]
+            for name in ("sensorFreeAcceleration", "sensorMagneticField", "sensorOrientation"):
+                arrays[name] = arrays[name][:, keep]
+        contacts = ()
+    calibration = {"identity": identity_pose(track), "tpose": (track.orientations[0], track.positions[0])}
+    write_mvnx(path, track, arrays=arrays, calibration=calibration, sensors=sensors, ergonomic_joints=ERGONOMIC_JOINTS,
+               foot_contacts=contacts, subject={"label": track.actor, "configuration": configuration},
+               start_epoch_ms=start_epoch_ms)  # fmt: skip
+    return Path(path), suit, track
 
 
 # --------------------------------------------------------------------------------------------- BVH

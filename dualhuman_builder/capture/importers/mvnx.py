@@ -95,6 +95,37 @@ FRAME_FIELD_ORDER = ("orientation", "position", "velocity", "acceleration", "ang
 
 HOST_TIME_NOTE = "host_time_ns copies device_time_ns: an MVNX file carries no host receive clock"
 
+#: The legs: no sensor measures them in MVN's upper-body configurations.
+LEG_SEGMENTS = ("RightUpperLeg", "RightLowerLeg", "RightFoot", "RightToe", "LeftUpperLeg", "LeftLowerLeg", "LeftFoot",
+                "LeftToe")  # fmt: skip
+_ABOVE_PELVIS = ("L5", "L3", "T12", "T8", "Neck", "Head", "RightShoulder", "RightUpperArm", "RightForeArm", "RightHand",
+                 "LeftShoulder", "LeftUpperArm", "LeftForeArm", "LeftHand")  # fmt: skip
+_HANDS = ("RightHand", "LeftHand")
+#: MVN suit configurations (the subject's ``configuration`` attribute, as the Xsens MVN SDK names them) -> the
+#: body segments no sensor measures there. MVN still reports all 23 segments: those it does not measure it
+#: sets in a fixed pose (the legs of an upper-body recording) or carries along with a measured neighbour (a
+#: hand with its forearm), so their motion is not the actor's.
+CONFIGURATIONS: dict[str, tuple[str, ...]] = {
+    "FullBody": (), "FullBodyNoSternum": (), "FullBodyNoHands": _HANDS, "FullBodyNoSternumNoHands": _HANDS,
+    "FullBodyNoShoulders": ("RightShoulder", "LeftShoulder"),
+    "UpperBody": LEG_SEGMENTS, "UpperBodyNoSternum": LEG_SEGMENTS, "UpperBodyNoHands": LEG_SEGMENTS + _HANDS,
+    "UpperBodyNoSternumNoHands": LEG_SEGMENTS + _HANDS,
+    "LowerBody": _ABOVE_PELVIS, "LowerBodyPlus": _ABOVE_PELVIS,
+    "PelvisSternum": tuple(s for s in _ABOVE_PELVIS if s != "T8") + LEG_SEGMENTS,
+    "SingleDevice": _ABOVE_PELVIS + LEG_SEGMENTS,
+}  # fmt: skip
+
+
+def unmeasured_segments(configuration: str) -> tuple[str, ...] | None:
+    """The MVN body segments no sensor measures in suit ``configuration`` (:data:`CONFIGURATIONS`; the
+    comparison ignores case, spaces and ``-``/``_``); ``()`` for a full body, ``None`` for a configuration
+    this toolkit does not know (treated as a full body, and said so)."""
+    key = "".join(ch for ch in str(configuration) if ch not in " -_").lower()
+    for name, segments in CONFIGURATIONS.items():
+        if name.lower() == key:
+            return segments
+    return None
+
 _S = math.sqrt(0.5)
 #: Most items of one kind (segments, sensors, joints, ergonomic joints) a frame may hold: a full MVN suit has
 #: 23 segments, 17 sensors, 22 joints; props and gloves add tens.
@@ -226,6 +257,12 @@ class MvnxFile:
     @property
     def label(self) -> str:
         return self.subject.get("label", "")
+
+    @property
+    def configuration(self) -> str:
+        """The suit configuration MVN recorded with (``FullBody``, ``UpperBody``...; see
+        :data:`CONFIGURATIONS`), ``""`` when the file does not say."""
+        return self.subject.get("configuration", "")
 
     @property
     def segment_names(self) -> tuple[str, ...]:
