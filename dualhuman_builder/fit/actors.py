@@ -54,6 +54,11 @@ def stance_mask(ankles: np.ndarray, fps: float, sole_offset: np.ndarray, cfg: Fi
     return (v < cfg.stance_speed_m_s) & low
 
 
+#: Weight of the orientation term on a segment no sensor measured (:attr:`~.inputs.ActorInput.segment_weight`
+#: 0): small, not 0, so the bone stays determined where nothing else moves it.
+UNMEASURED_WEIGHT = 0.01
+
+
 class ActorTensors:
     """One actor's constants on ``cfg.device``: the rig of its shape, the retargeted bone rotations
     ``target (T, S, 3, 3)``, the fused root ``transl0 (T, 3)``, the trackers, the stance mask ``(T, 2)``
@@ -73,6 +78,10 @@ class ActorTensors:
         self.target = self.rig.retarget(frames)  # (T, S, 3, 3)
         self.transl0 = torch.as_tensor(_interp_rows(np.asarray(inp.pelvis, np.float64), valid), dtype=dt, device=dev)
         self.valid = torch.as_tensor(valid, device=dev)
+        # trust in each segment's measured orientation: an unmeasured one (an upper-body recording's legs)
+        # keeps a weak pull to the suit's pose so the smoothness, floor and stance terms decide it
+        w = np.ones(len(MVN_SEGMENTS)) if inp.segment_weight is None else np.asarray(inp.segment_weight, np.float64)
+        self.seg_w = torch.as_tensor(np.maximum(w, UNMEASURED_WEIGHT), dtype=dt, device=dev)  # (S,)
         self.trk_pos = torch.as_tensor(np.nan_to_num(inp.trk_pos), dtype=dt, device=dev)
         self.trk_valid = torch.as_tensor(np.asarray(inp.trk_valid, bool) & valid[:, None], device=dev)
         self.trk_seg = torch.as_tensor(np.asarray(inp.trk_segment, np.int64), device=dev)
@@ -133,6 +142,7 @@ class ActorStack:
         self.target = torch.stack([a.target for a in acts])  # (A, T, S, 3, 3)
         self.transl0 = torch.stack([a.transl0 for a in acts])  # (A, T, 3)
         self.valid = torch.stack([a.valid for a in acts]).float()  # (A, T)
+        self.seg_w = torch.stack([a.seg_w for a in acts])  # (A, S)
         self.stance = torch.stack([a.stance for a in acts])  # (A, T, 2)
         z = torch.zeros
         self.trk_seg = torch.stack([torch.cat([a.trk_seg, z(p, dtype=torch.int64, device=dev)])

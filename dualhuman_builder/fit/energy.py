@@ -2,7 +2,7 @@
 
 Per window of ``n`` frames, with ``A`` actors stacked (:class:`~dualhuman_builder.fit.actors.ActorStack`)::
 
-    E = sum_frames [ |delta|^2 / s_o^2                          orientation: change of each driven bone
+    E = sum_frames [ w_s |delta_s|^2 / s_o^2                    orientation: change of each driven bone
                    + sum_trackers |site - p_tracker|^2 / s_t^2  tracker positions (drift-free reference)
                    + sum_joints |accel|^2 / s_a^2               temporal smoothness (22 joints)
                    + sum_soles relu(-y)^2 / s_f^2               no foot below the floor
@@ -11,7 +11,9 @@ Per window of ``n`` frames, with ``A`` actors stacked (:class:`~dualhuman_builde
                    + sum_hands (o / s_h)^2 + |o''|^2 / s_ha^2   hand openings: relaxed unless pushed ]
 
 ``delta (A, n, 23, 3)`` rotation vectors (rad), ``dtransl (A, n, 3)`` (m), ``opening (A, n, 4)`` (0
-anny's relaxed hand, 1 flat; :mod:`dualhuman_builder.body.hands`); the sigmas are
+anny's relaxed hand, 1 flat; :mod:`dualhuman_builder.body.hands`); ``w_s`` the trust in segment ``s``'s
+measured orientation (1; :data:`~dualhuman_builder.fit.actors.UNMEASURED_WEIGHT` where no sensor measured
+it, an upper-body recording's legs); the sigmas are
 :class:`~dualhuman_builder.fit.config.FitConfig`'s. The bones' terms read only ~30 bone heads and ~80
 sole vertices per actor, linear in the driven rotations (:meth:`BodyRig.pose_linear`), so no mesh is
 skinned here. The smoothness terms read up to two fixed frames on either side of the window: a
@@ -39,7 +41,7 @@ def skeleton_energy(st: ActorStack, delta, dtransl, opening, sl: slice, ctx, cfg
     rot = st.rotations(delta, sl)
     (joints, trk_heads, _), soles = st.skeleton(rot, st.transl0[:, sl] + dtransl)
     s_o = np.radians(cfg.sigma_orientation_deg)
-    e = (delta.pow(2).sum((-1, -2)) * st.valid[:, sl]).sum() / s_o**2
+    e = ((delta.pow(2).sum(-1) * st.seg_w[:, None, :]).sum(-1) * st.valid[:, sl]).sum() / s_o**2
     if st.K:
         A, n = rot.shape[:2]
         idx = st.trk_seg[:, None, :, None].expand(A, n, st.K, 9)

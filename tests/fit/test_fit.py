@@ -1074,3 +1074,33 @@ def test_segments_fitted_in_worker_processes_give_the_same_bodies(model, monkeyp
         assert sorted(m for m in said[name] if m.startswith("window")) == sorted(m for m in said["here"] if m.startswith("window"))
     assert any(m.startswith("WARNING: fit worker 1 exited with status 1") for m in said["broken"]), said["broken"]
     assert [m for m in said["broken"] if "its worker failed" in m] == [f"fitting segment {i} in this process (its worker failed)" for i in (1, 2, 3)]
+
+
+def test_an_unmeasured_segment_pulls_its_bone_only_weakly(model):
+    """A segment no sensor measured (an upper-body recording's legs, ``ActorInput.segment_weight`` 0)
+    keeps only :data:`~dualhuman_builder.fit.actors.UNMEASURED_WEIGHT` of the orientation term: turning
+    that bone away from the suit's pose costs that share of what turning a measured bone costs."""
+    from dualhuman_builder.body.mapping import MVN_SEGMENTS
+    from dualhuman_builder.fit.actors import UNMEASURED_WEIGHT
+    from dualhuman_builder.fit.energy import skeleton_energy
+    from dualhuman_builder.fit.inputs import segment_weights
+    from dualhuman_builder.fit.segment import SegmentFitter
+
+    T, sl = 6, slice(0, 6)
+    inputs = _overlapping_pair(T, dx=0.6)
+    inputs[0].segment_weight = segment_weights(["RightUpperLeg"])
+    # only the orientation term: no smoothness, floor, stance or sliding terms to see the leg move
+    fitter = SegmentFitter(model, inputs, 15.0, FitConfig(sigma_accel_m_s2=1e9, sigma_floor_m=1e9, sigma_contact_m=0.0,
+                                                          sigma_slide_m=1e9))  # fmt: skip
+    leg, arm = MVN_SEGMENTS.index("RightUpperLeg"), MVN_SEGMENTS.index("RightUpperArm")
+    zeros = torch.zeros(2, T, 23, 3)
+
+    def cost(actor: int, seg: int) -> float:
+        delta = zeros.clone()
+        delta[actor, :, seg, 0] = 0.2
+        rest = skeleton_energy(fitter.stack, zeros, torch.zeros(2, T, 3), torch.zeros(2, T, 4), sl, None, fitter.cfg, 15.0)[0]
+        turned = skeleton_energy(fitter.stack, delta, torch.zeros(2, T, 3), torch.zeros(2, T, 4), sl, None, fitter.cfg, 15.0)[0]
+        return float(turned - rest)
+
+    assert cost(0, leg) == pytest.approx(UNMEASURED_WEIGHT * cost(0, arm), rel=0.05)
+    assert cost(1, leg) == pytest.approx(cost(1, arm), rel=0.05)  # the other actor's legs were measured
