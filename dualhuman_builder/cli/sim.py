@@ -25,11 +25,12 @@ def _floats(text: str | None, what: str, n: int = 2) -> list[float] | None:
 
 #: The scene types (``dualhuman_builder.sim.scenes.ALL_TYPES``, spelled out so that --help imports nothing heavy;
 #: tests/cli/test_cli.py checks they agree).
-SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration")
+SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn", "calibration", "session")
 _scene_type_option = click.option(
-    "--type", "scene_type", type=click.Choice(SCENE_TYPES), default="handshake", show_default=True,
-    help="The interaction; or 'calibration', the calibration motion of a studio day (the actors apart, turning every "
-         "tracked segment: see `dualhuman sync --mounts-from`).")  # fmt: skip
+    "--type", "scene_type", type=click.Choice(SCENE_TYPES), default="handshake", show_default=True, metavar="TYPE",
+    help=f"One of {', '.join(SCENE_TYPES)}. The interaction; or 'calibration', the calibration motion of a studio day (the actors apart, turning every "
+         "tracked segment: see `dualhuman sync --mounts-from`); or 'session', a long take chaining the interactions "
+         "with walking and idling between them (its length: --duration, a minute by default).")  # fmt: skip
 
 
 @main.group()
@@ -132,6 +133,28 @@ def scene_preview(scene_file: Path, out: Path | None, frames: int, contacts: boo
     console.print(f"wrote {out} ({len(info['frames'])} frames, {info['variant']}, {info['seconds']:.1f} s)", highlight=False)
 
 
+#: The device error presets (``dualhuman_builder.sim.presets.PRESETS``, spelled out so that --help imports nothing
+#: heavy; tests/sim/test_presets.py checks they agree).
+PRESETS = ("ideal", "realistic")
+
+
+def _with_preset(source: str, preset: str | None) -> str:
+    """``source`` with ``preset=PRESET`` in its query (a sim:// URL); unchanged when ``preset`` is None."""
+    from urllib.parse import parse_qsl, urlsplit
+
+    if preset is None:
+        return source
+    parts = urlsplit(source)
+    if parts.scheme != "sim":
+        raise click.BadParameter(f"--preset applies to sim:// sources, not {source!r}", param_hint="--preset")
+    given = dict(parse_qsl(parts.query, keep_blank_values=True)).get("preset")
+    if given is not None:
+        if given != preset:
+            raise click.BadParameter(f"{source!r} already says preset={given}", param_hint="--preset")
+        return source
+    return f"{source}{'&' if parts.query else '?'}preset={preset}"
+
+
 @main.group()
 def sim():
     """Simulated devices: suits, trackers and IMUs driven by a ground-truth scene."""
@@ -151,11 +174,15 @@ def sim():
 @click.option("--outage", multiple=True, metavar="START-STOP[@STREAM]",
               help="Silence streams (fnmatch, e.g. 'mvn/1' or 'vive/*') from START to STOP seconds; repeatable.")  # fmt: skip
 @click.option("--fault-seed", type=int, default=0, show_default=True, help="Seed of the injected faults.")
-def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplicate, corrupt, outage, fault_seed):
+@click.option("--preset", type=click.Choice(PRESETS), default=None,
+              help="Device errors: 'ideal' (the default) or 'realistic' (every error drawn per take within published "
+                   "ranges; docs/guides/simulation-presets.md). The same as preset=... in SOURCE.")  # fmt: skip
+def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplicate, corrupt, outage, fault_seed,
+             preset):  # fmt: skip
     """Play the devices of SOURCE (sim://TYPE?seed=N, or sim:///path/scene.npz) onto real
     transports in real time (or --speed N times faster), with optional injected faults.
 
-    Example: dualhuman sim play 'sim://handshake?seed=3' --speed 2 --loss 0.01
+    Example: dualhuman sim play 'sim://handshake?seed=3' --speed 2 --loss 0.01 --preset realistic
     """
     import math
 
@@ -176,6 +203,7 @@ def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplica
                         outages=tuple(outages))  # fmt: skip
     except ValueError as e:
         raise click.BadParameter(str(e)) from None
+    source = _with_preset(source, preset)
     with console.status(f"simulating {source}...") as spinner:
         src = open_source(source, progress=lambda m: spinner.update(m))
     try:
@@ -209,9 +237,12 @@ def sim_play(source, mvn, trackers, xbus, can_bus, speed, loss, reorder, duplica
 @click.option("--sequence", default=None, help="Name of the take's one sequence (default: the scene type).")
 @click.option("--speed", type=click.FloatRange(min=0.1, max=20.0), default=1.0, show_default=True,
               help="The devices play this many times faster than real time while recorded.")
+@click.option("--preset", type=click.Choice(PRESETS), default="ideal", show_default=True,
+              help="Device errors: 'ideal' (the simulators' defaults) or 'realistic' (every error drawn per take within "
+                   "published ranges; docs/guides/simulation-presets.md).")
 @click.option("--force", is_flag=True, help="Run the stages again even when they are up to date.")
 def sim_take(workspace: Path, take: str, scene_type: str, seed: int, fps: float, sequence: str | None, speed: float,
-             force: bool):  # fmt: skip
+             preset: str, force: bool):  # fmt: skip
     """Simulate a take into WORKSPACE (created if missing): its scene, devices and capture stages.
 
     A generated ground-truth scene of the two simulated actors sim-a (1.68 m) and sim-b (1.82 m),
@@ -224,6 +255,7 @@ def sim_take(workspace: Path, take: str, scene_type: str, seed: int, fps: float,
     Example:
       dualhuman sim take WS --take CAL --type calibration --seed 3
       dualhuman sim take WS --take T001 --type hug --seed 3
+      dualhuman sim take WS --take T002 --type hug --seed 3 --preset realistic
       dualhuman fit WS --take T001 --mounts-from CAL
     """
     from dualhuman_builder.resources import RIGS_DIR
@@ -235,7 +267,7 @@ def sim_take(workspace: Path, take: str, scene_type: str, seed: int, fps: float,
         shapes = ensure_actors(ws, DEFAULT_ACTORS, log=console.print)
         params = {"type": scene_type, "seed": seed, "fps": fps}
         ran = simulate_take(ws, take, sequence or scene_type, params, DEFAULT_ACTORS, shapes, speed=speed, force=force,
-                            log=console.print)  # fmt: skip
+                            log=console.print, preset=preset)  # fmt: skip
         for stage, res in ran.items():
             console.print(f"{stage}: {'up to date' if res.skipped else 'done'}", highlight=False)
 

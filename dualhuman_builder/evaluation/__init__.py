@@ -3,5 +3,7 @@ joint, vertex and contact is known.
 
 * :mod:`.fit` — the whole path (simulated devices -> capture -> sync -> fuse -> fit) scored against
   the scene: joint and root error, penetration, clocks, mounts, foot slide;
-* :mod:`.contacts` — contacts of a scene's bodies against its own per-vertex contacts (F1).
+* :mod:`.contacts` — contacts of a scene's bodies against its own per-vertex contacts, and the fitted
+  pair's contacts against the ground truth's (per-vertex precision, recall and F1 per take and body
+  region; contact-event onset and offset errors).
 """

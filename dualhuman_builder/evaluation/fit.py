@@ -28,22 +28,34 @@ from dualhuman_builder.body.mapping import MVN_SEGMENTS
 
 
 def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: float = 30.0,
-                          speed: float = 1.0, duration: float | None = None, model=None) -> tuple[Path, object]:  # fmt: skip
-    """Generate a ``scene_type`` scene (seed, fps), record its studio through loopback transports at
-    ``speed`` times real time. Returns ``(take_path, scene)``. Keep ``speed`` at 1 when the sync is
-    scored: above the highest lossless multiple of the machine (``benchmarks/bench_capture.py``)
-    the host receive times lag the devices' own timing, and the score would measure that lag, not
-    the sync."""
-    from dualhuman_builder.capture.recording import capture_take, plan_capture
-    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+                          speed: float = 1.0, duration: float | None = None, model=None,
+                          preset: str = "ideal") -> tuple[Path, object]:  # fmt: skip
+    """Generate a ``scene_type`` scene (seed, fps), record its studio (device seed ``seed``, device
+    error ``preset``: :data:`~dualhuman_builder.sim.presets.PRESETS`) through loopback transports at
+    ``speed`` times real time. Returns ``(take_path, scene)``; a take of a preset other than
+    ``ideal`` is named with it (``hug-3-realistic.mcap``), and the parameters the preset drew are
+    written next to it (``hug-3-realistic.devices.json``, for evaluation). Keep ``speed`` at 1
+    when the sync is scored: above the highest lossless multiple of the machine
+    (``benchmarks/bench_capture.py``) the host receive times lag the devices' own timing, and the
+    score would measure that lag, not the sync."""
+    import json
 
+    from dualhuman_builder.capture.recording import capture_take, plan_capture
+    from dualhuman_builder.sim.presets import check_preset, draw_device_errors
+    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+    from dualhuman_builder.sim.stage import device_url
+
+    check_preset(preset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(SceneParams(type=scene_type, seed=seed, fps=fps, duration=duration), model=model)
     scene_path = scene.save(out / f"{scene_type}-{seed}.scene.npz")
-    take = out / f"{scene_type}-{seed}.mcap"
-    res = capture_take(plan_capture(sources=[f"sim://{Path(scene_path).resolve()}?devices={seed}"]), take,
-                       take=f"{scene_type}-{seed}".replace("_", "-"), sim_speed=speed)  # fmt: skip
+    name = f"{scene_type}-{seed}" if preset == "ideal" else f"{scene_type}-{seed}-{preset}"
+    take = out / f"{name}.mcap"
+    res = capture_take(plan_capture(sources=[device_url(scene_path, seed, preset)]), take,
+                       take=name.replace("_", "-"), sim_speed=speed)  # fmt: skip
+    if preset != "ideal":
+        (out / f"{name}.devices.json").write_text(json.dumps(draw_device_errors(preset, seed).drawn, indent=2))
     if res.error:
         raise RuntimeError(f"recording the simulated take failed: {res.error}")
     return take, scene
@@ -56,8 +68,14 @@ def _gt_frames(times_s: np.ndarray, gt_fps: float, n: int) -> np.ndarray:
     return np.clip(idx, 0, n - 1)
 
 
-def evaluate_take_fit(tf, scene, seed: int, model=None) -> dict:
-    """Errors of ``tf`` (a TakeFit) against ``scene`` recorded with devices seed ``seed``."""
+def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True) -> dict:
+    """Errors of ``tf`` (a TakeFit) against ``scene`` recorded with devices seed ``seed``. With
+    ``contacts`` (two actors), the fitted pair's contacts against the scene's at the contact threshold
+    (:func:`~dualhuman_builder.evaluation.contacts.take_fit_contacts`): ``contact_precision``,
+    ``contact_recall``, ``contact_f1`` (per vertex, both actors, every frame), ``contact_regions``
+    (region -> the same), ``contact_onset_error_ms`` / ``contact_offset_error_ms`` (mean over the
+    region-pair events matched, ``contact_events_missed`` / ``contact_events_spurious`` the others)
+    and ``contact_any_onset_error_ms`` / ``contact_any_offset_error_ms`` (runs of frames with any contact)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import FitConfig, stance_mask
     from dualhuman_builder.fit.skeleton import sole_vertices
@@ -94,6 +112,16 @@ def evaluate_take_fit(tf, scene, seed: int, model=None) -> dict:
     out["penetrating_share"] = s.get("penetrating_share_after", float("nan"))
     out["max_penetration_before_mm"] = s.get("max_penetration_before_mm", float("nan"))
     out["penetrating_share_before"] = s.get("penetrating_share_before", float("nan"))
+    if contacts and len(actors) == 2:
+        from dualhuman_builder.evaluation.contacts import take_fit_contacts
+
+        c = take_fit_contacts(tf, scene)
+        out.update({"contact_precision": c["precision"], "contact_recall": c["recall"], "contact_f1": c["f1"],
+                    "contact_regions": c["regions"], "contact_onset_error_ms": c["events"]["onset_ms"],
+                    "contact_offset_error_ms": c["events"]["offset_ms"], "contact_events_missed": c["events"]["missed"],
+                    "contact_events_spurious": c["events"]["spurious"],
+                    "contact_any_onset_error_ms": c["any_events"]["onset_ms"],
+                    "contact_any_offset_error_ms": c["any_events"]["offset_ms"]})  # fmt: skip
     # clocks and mounts against the simulators' truth (deterministic for the seed)
     studio = simulate_studio(gt, seed=seed)
     clocks = tf.sync.report.get("clocks", {})

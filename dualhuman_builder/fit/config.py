@@ -74,6 +74,18 @@ class FitConfig:
     #: vertices outside the other body within this distance (m) are held with the contacts, so the held
     #: term sees them cross in
     collision_margin_m: float = 0.005
+    #: the contact pass (:mod:`dualhuman_builder.fit.contact_pass`) pulls together the bodies of frames whose
+    #: surfaces the collision passes left within this distance (m) of each other without touching: a contact
+    #: the inputs support (0: off; at most the collision term's 1 cm pad)
+    contact_reach_m: float = 0.008
+    #: ... the nearest this many vertex pairs of each such frame ...
+    contact_pairs: int = 4
+    #: ... to this gap (m): touching, not penetrating ...
+    contact_gap_m: float = 0.002
+    #: ... each pair's gap beyond it a squared residual over this (m), against the skeleton energy
+    sigma_contact_gap_m: float = 0.002
+    #: L-BFGS iterations of the contact pass
+    contact_iterations: int = 10
     #: orientation change of each driven bone against the retarget (deg)
     sigma_orientation_deg: float = 2.0
     #: tracker site against the tracker position (m)

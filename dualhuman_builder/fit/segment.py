@@ -3,8 +3,10 @@
 
 Each window is one L-BFGS problem over both actors: first the skeleton pass (every term but the
 collision term, :mod:`dualhuman_builder.fit.energy`), then the collision passes where the bodies
-touch (:class:`~dualhuman_builder.fit.collision_rounds.CollisionRounds`). A segment's first window
-starts from the retarget (zero corrections); each next one starts from the previous one's answer in
+touch (:class:`~dualhuman_builder.fit.collision_rounds.CollisionRounds`), then the contact pass where they
+come within a few millimetres without touching (:class:`~dualhuman_builder.fit.contact_pass.ContactPass`).
+A segment's first window starts from the retarget (zero corrections); each next one starts from the
+previous one's answer in
 the frames they share and reads its last two frames as fixed context. The answer is the same in any
 process: every segment starts from the same state (docs/decisions/0018-segments-in-worker-processes.md).
 """
@@ -18,6 +20,7 @@ import torch
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
 from dualhuman_builder.fit.collision_rounds import CollisionRounds, runs
+from dualhuman_builder.fit.contact_pass import ContactPass
 from dualhuman_builder.fit.energy import context_of
 from dualhuman_builder.fit.layout import SegmentAnswer
 from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR, FitProblem, Window
@@ -43,6 +46,8 @@ class SegmentFitter(FitProblem):
             self._skeleton_pass(win)
             if self.collide is not None:
                 run.record_collision(win, *CollisionRounds(self, win, run.out, say).run())
+                if self.cfg.contact_reach_m > 0:
+                    run.record_contact(win, ContactPass(self, win, say).run())
             run.store(win)
             say(f"window {wi + 1}/{n_windows}: frames {s0}-{s1 - 1}" if n_windows else f"seam: frames {s0}-{s1 - 1} fitted again")
         return run.finish()
@@ -123,6 +128,12 @@ class _SegmentRun:
         self.known[:, rows] = np.nan
         if after is not None:
             self.known[:, rows] = after
+
+    def record_contact(self, win: Window, after: tuple | None) -> None:
+        """Note the window's depths ``(depth, share)`` ``(W,)`` each after its contact pass (None: it moved
+        nothing)."""
+        if after is not None:
+            self.known[:, win.s0 - self.first : win.s1 - self.first] = after
 
     def store(self, win: Window) -> None:
         """Write the window's answer into the segment's corrections (the frames it shares with the next
