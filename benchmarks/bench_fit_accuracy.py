@@ -1,9 +1,16 @@
 """Fit accuracy through the whole path, per scene type and seed: simulated devices -> real loopback
 transports -> MCAP -> replay -> sync -> fuse -> fit, against the scene's ground truth.
 
-    .venv/bin/python benchmarks/bench_fit_accuracy.py                        # six types x seeds 1, 2 at 15 fps
-    .venv/bin/python benchmarks/bench_fit_accuracy.py --types hug --seeds 1 2 3 --fps 30
+    .venv/bin/python benchmarks/bench_fit_accuracy.py                     # six types x the held-out seeds, 15 fps
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --preset realistic  # every device error drawn per take
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --types hug --seeds 1 2 --fps 30
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/       # record once, score again later
+
+The reported seeds (``HELD_OUT_SEEDS``, 11 and 12) were chosen once and the fit is never tuned on them;
+tune on seeds 1 and 2. ``--preset`` picks the simulated studio's device errors (``ideal``: the
+simulators' defaults; ``realistic``: every parameter drawn per take within published ranges) and the
+goals that go with it (``GOALS_BY_PRESET``); a realistic run writes ``fit_accuracy_realistic.json``.
+PA-MPJPE is the joint error after a per-frame similarity alignment to the truth.
 
 Per take it fits twice: with trackers and the collision term (the product; the fitter also measures
 the penetration its windows leave before the collision passes: the "off" columns), and without
@@ -54,15 +61,24 @@ from results_file import Goal, Table, write_results  # noqa: E402
 #: The goals, each an upper bound on a column's worst take ...
 GOALS = {"mpjpe_mm": 15.0, "root_mm": 10.0, "max_penetration_mm": 5.0, "penetrating_share_pct": 0.1,
          "clock_offset_error_ms": 1.0, "mount_rotation_error_deg": 1.0, "foot_slide_mm": 5.0}  # fmt: skip
-#: ... or a lower bound on it (the fitted pair's contacts against the ground truth's, issue's ``ideal`` preset)
+#: ... or a lower bound on it (the fitted pair's contacts against the ground truth's)
 GOALS_AT_LEAST = {"contact_f1": 0.90}
+#: The goals per device error preset (``--preset``): (upper bounds, lower bounds) on the worst take. Under
+#: ``realistic`` the clocks' latency and the mounts' slip are part of the error, so their own goals are not set.
+GOALS_BY_PRESET = {
+    "ideal": (GOALS, GOALS_AT_LEAST),
+    "realistic": ({"mpjpe_mm": 25.0, "pa_mpjpe_mm": 20.0, "root_mm": 20.0, "max_penetration_mm": 5.0,
+                   "penetrating_share_pct": 0.1, "foot_slide_mm": 5.0}, {"contact_f1": 0.85}),
+}  # fmt: skip
+#: The seeds the accuracy tables report, chosen once and never tuned on (the fit was tuned on seeds 1 and 2).
+HELD_OUT_SEEDS = (11, 12)
 #: columns whose worst take is the smallest value
 LOWER_IS_WORSE = ("fit_pairs_per_s", "contact_f1", "contact_precision", "contact_recall")
-COLUMNS = ("mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetration_mm", "max_penetration_off_mm",
+COLUMNS = ("mpjpe_mm", "pa_mpjpe_mm", "root_mm", "mpjpe_free_mm", "root_free_mm", "max_penetration_mm", "max_penetration_off_mm",
            "penetrating_share_pct", "penetrating_share_off_pct", "clock_offset_error_ms", "mount_rotation_error_deg",
            "mount_offset_error_mm", "foot_slide_mm", "contact_f1", "contact_precision", "contact_recall",
            "contact_onset_error_ms", "contact_offset_error_ms", "fit_pairs_per_s")  # fmt: skip
-LABELS = {"mpjpe_mm": ("MPJPE", "mm"), "root_mm": ("root error", "mm"), "mpjpe_free_mm": ("MPJPE without trackers", "mm"),
+LABELS = {"mpjpe_mm": ("MPJPE", "mm"), "pa_mpjpe_mm": ("PA-MPJPE", "mm"), "root_mm": ("root error", "mm"), "mpjpe_free_mm": ("MPJPE without trackers", "mm"),
           "root_free_mm": ("root error without trackers", "mm"), "max_penetration_mm": ("max penetration", "mm"),
           "max_penetration_off_mm": ("max penetration before the collision passes", "mm"),
           "penetrating_share_pct": ("share of vertices penetrating", "%"),
@@ -78,42 +94,44 @@ LABELS = {"mpjpe_mm": ("MPJPE", "mm"), "root_mm": ("root error", "mm"), "mpjpe_f
           "mpjpe_exact_mm": ("MPJPE, exact contacts", "mm")}  # fmt: skip
 
 
-def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model):
-    """``(take, scene)``: the take kept in ``tmp/<type>-<seed>/``, or a new recording there."""
+def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, preset: str = "ideal"):
+    """``(take, scene)``: the take kept in ``tmp/<type>-<seed>[-<preset>]/``, or a new recording there."""
     from dualhuman_builder.evaluation.fit import record_simulated_take
     from dualhuman_builder.sim.scenes import Scene
 
-    folder = tmp / f"{scene_type}-{seed}"
-    take, scene_file = folder / f"{scene_type}-{seed}.mcap", folder / f"{scene_type}-{seed}.scene.npz"
+    name = f"{scene_type}-{seed}" if preset == "ideal" else f"{scene_type}-{seed}-{preset}"
+    folder = tmp / name
+    take, scene_file = folder / f"{name}.mcap", folder / f"{scene_type}-{seed}.scene.npz"
     if take.is_file() and scene_file.is_file():  # kept from an earlier run (--keep)
         scene = Scene.load(scene_file)
         if abs(scene.sequence.fps - fps) > 1e-9:
             raise SystemExit(f"{take} was recorded at {scene.sequence.fps:g} fps, not {fps:g}: use another --keep folder")
         return take, scene
-    return record_simulated_take(scene_type, seed, folder, fps=fps, speed=speed, model=model)
+    return record_simulated_take(scene_type, seed, folder, fps=fps, speed=speed, model=model, preset=preset)
 
 
 def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False,
-             mounts_from=None) -> dict:  # fmt: skip
+             mounts_from=None, preset: str = "ideal") -> dict:  # fmt: skip
     from dualhuman_builder.evaluation.fit import evaluate_take_fit
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.process import process_take
 
-    take, scene = recorded(scene_type, seed, fps, speed, tmp, model)
+    take, scene = recorded(scene_type, seed, fps, speed, tmp, model, preset)
     t0 = time.perf_counter()
     tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from)
     wall = time.perf_counter() - t0
-    ev = evaluate_take_fit(tf, scene, seed=seed, model=model)
+    ev = evaluate_take_fit(tf, scene, seed=seed, model=model, preset=preset)
     extra = {}
     if compare_exact:
         exact = process_take(take, fps=fps, config=FitConfig(collision_hold_contacts=False), model=model)
         extra = {"fit_s_exact": exact.fit.summary["fit_seconds"],
-                 "mpjpe_exact_mm": evaluate_take_fit(exact, scene, seed=seed, model=model, contacts=False)["mpjpe_mm"]}  # fmt: skip
+                 "mpjpe_exact_mm": evaluate_take_fit(exact, scene, seed=seed, model=model, contacts=False,
+                                                     preset=preset)["mpjpe_mm"]}  # fmt: skip
     free = evaluate_take_fit(process_take(take, fps=fps, use_trackers=False, config=FitConfig(collision=False), model=model),
-                             scene, seed=seed, model=model, contacts=False)  # fmt: skip
+                             scene, seed=seed, model=model, contacts=False, preset=preset)  # fmt: skip
     return {
         "type": scene_type, "seed": seed, "frames": ev["frames"],
-        "mpjpe_mm": ev["mpjpe_mm"], "root_mm": ev["root_mm"],
+        "mpjpe_mm": ev["mpjpe_mm"], "pa_mpjpe_mm": ev["pa_mpjpe_mm"], "root_mm": ev["root_mm"],
         "mpjpe_free_mm": free["mpjpe_mm"], "root_free_mm": free["root_mm"],
         "max_penetration_mm": ev["max_penetration_mm"], "max_penetration_off_mm": ev["max_penetration_before_mm"],
         "penetrating_share_pct": 100 * ev["penetrating_share"], "penetrating_share_off_pct": 100 * ev["penetrating_share_before"],
@@ -150,11 +168,14 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--types", nargs="+", default=list(SCENE_TYPES), choices=SCENE_TYPES)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[1, 2])
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(HELD_OUT_SEEDS),
+                    help="scene and device seeds (default: the held-out ones, never tuned on)")
+    ap.add_argument("--preset", choices=tuple(GOALS_BY_PRESET), default="ideal",
+                    help="device error preset of the simulated studio (docs/guides/simulation-presets.md)")
     ap.add_argument("--fps", type=float, default=15.0, help="scene and fit frame rate")
     ap.add_argument("--speed", type=float, default=1.0, help="recording speed (multiple of real time)")
     ap.add_argument("--out", type=Path, default=None,
-                    help="results file (default benchmarks/results/fit_accuracy.json, or fit_accuracy_calibrated.json)")
+                    help="results file (default benchmarks/results/fit_accuracy[_calibrated][_realistic].json)")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
@@ -162,7 +183,7 @@ def main() -> None:
     ap.add_argument("--calibration", action="store_true",
                     help="carry the tracker mounts and lags of a calibration take per device seed into each take's sync")
     args = ap.parse_args()
-    name = "fit_accuracy_calibrated" if args.calibration else "fit_accuracy"
+    name = "fit_accuracy" + ("_calibrated" if args.calibration else "") + ("" if args.preset == "ideal" else f"_{args.preset}")
     cols = COLUMNS + ("fit_s", "exact_frames", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model
@@ -181,9 +202,9 @@ def main() -> None:
             from dualhuman_builder.sim.studio import simulate_studio
 
             for s in args.seeds:
-                take, scene = recorded("calibration", s, args.fps, args.speed, folder, model)
+                take, scene = recorded("calibration", s, args.fps, args.speed, folder, model, args.preset)
                 calibrations[s] = synchronise(read_columns(take), fps=args.fps)
-                e = mount_errors(calibrations[s], simulate_studio(scene.sequence, seed=s))
+                e = mount_errors(calibrations[s], simulate_studio(scene.sequence, seed=s, preset=args.preset))
                 t = e["translation_mm"]
                 calibration_takes[str(s)] = {"rotation_deg_worst": float(e["rotation_deg"].max()),
                                              "offset_mm_mean": float(t.mean()), "offset_mm_rms": float(np.sqrt(np.mean(t**2))),
@@ -192,7 +213,7 @@ def main() -> None:
                       f"{np.sqrt(np.mean(t**2)):.1f} RMS, {t.max():.1f} worst", flush=True)  # fmt: skip
         for t in args.types:
             for s in args.seeds:
-                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s))
+                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s), args.preset)
                 rows.append(r)
                 print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in cols), flush=True)
     summary = {}
@@ -212,7 +233,8 @@ def main() -> None:
     for name, r in regions.items():
         print(f"  {name:<18}{r['precision']:10.3f}{r['recall']:10.3f}{r['f1']:8.3f}{r['tp'] + r['fn']:9d}")
     print("\ngoals (worst take):")
-    bounds = [(c, "<=", b) for c, b in GOALS.items()] + [(c, ">=", b) for c, b in GOALS_AT_LEAST.items()]
+    upper, lower = GOALS_BY_PRESET[args.preset]
+    bounds = [(c, "<=", b) for c, b in upper.items()] + [(c, ">=", b) for c, b in lower.items()]
     for c, op, bound in bounds:
         worst = summary[c].get("worst", float("nan"))
         met = worst <= bound if op == "<=" else worst >= bound
@@ -229,7 +251,7 @@ def main() -> None:
                          ["region", "precision", "recall", "F1"],
                          [[name] + [f"contact_regions.{name}.{k}" for k in ("precision", "recall", "f1")]
                           for name in regions])  # fmt: skip
-    params = {"types": args.types, "seeds": args.seeds, "fps": args.fps, "speed": args.speed,
+    params = {"types": args.types, "seeds": args.seeds, "preset": args.preset, "fps": args.fps, "speed": args.speed,
               "calibration": args.calibration, "compare_exact": args.compare_exact,
               "keep": str(args.keep) if args.keep else None}  # fmt: skip
     path = write_results(name, figures, params=params, goals=goals, tables=[table, region_table], out=args.out,

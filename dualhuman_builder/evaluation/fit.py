@@ -68,8 +68,26 @@ def _gt_frames(times_s: np.ndarray, gt_fps: float, n: int) -> np.ndarray:
     return np.clip(idx, 0, n - 1)
 
 
-def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True) -> dict:
-    """Errors of ``tf`` (a TakeFit) against ``scene`` recorded with devices seed ``seed``. With
+def procrustes_aligned(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``pred (T, J, 3)`` aligned to ``truth`` per frame by the similarity transform (rotation, uniform
+    scale, translation) that minimises the squared joint distances (Umeyama's closed form): what
+    PA-MPJPE measures after, the pose's error without its global placement and size."""
+    p = pred - pred.mean(1, keepdims=True)
+    q = truth - truth.mean(1, keepdims=True)
+    u, sv, vt = np.linalg.svd(np.einsum("tji,tjk->tik", p, q))
+    d = np.sign(np.linalg.det(u @ vt))
+    sv[:, -1] *= d
+    u[:, :, -1] *= d[:, None]
+    rot = u @ vt  # (T, 3, 3): p @ rot ~ q
+    scale = sv.sum(1) / np.maximum((p**2).sum((1, 2)), 1e-12)
+    return scale[:, None, None] * (p @ rot) + truth.mean(1, keepdims=True)
+
+
+def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True, preset: str = "ideal") -> dict:
+    """Errors of ``tf`` (a TakeFit) against ``scene`` recorded with devices seed ``seed`` and device
+    error preset ``preset`` (:mod:`~dualhuman_builder.sim.presets`; the clocks' and mounts' truth is
+    drawn again from them): ``mpjpe_mm``, ``pa_mpjpe_mm`` (after :func:`procrustes_aligned`), ``root_mm``,
+    ``foot_slide_mm``, penetration, clock and mount errors. With
     ``contacts`` (two actors), the fitted pair's contacts against the scene's at the contact threshold
     (:func:`~dualhuman_builder.evaluation.contacts.take_fit_contacts`): ``contact_precision``,
     ``contact_recall``, ``contact_f1`` (per vertex, both actors, every frame), ``contact_regions``
@@ -87,12 +105,13 @@ def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True) -
     actors = fit.actors if hasattr(fit, "actors") else fit
     idx = _gt_frames(tf.sync.times_s, gt.fps, gt.num_frames)
     out: dict = {"frames": int(len(idx))}
-    errs, roots, slides = [], [], []
+    errs, pa_errs, roots, slides = [], [], [], []
     soles = sole_vertices(model)
     for k, track in enumerate(actors):
         g = gt.actors[k]
         jf, jg = track.joints(), g.joints()[idx]
         errs.append(np.linalg.norm(jf - jg, axis=-1))
+        pa_errs.append(np.linalg.norm(procrustes_aligned(jf, jg) - jg, axis=-1))
         roots.append(np.linalg.norm(np.asarray(track.transl) - np.asarray(g.transl)[idx], axis=-1))
         vf, vg = track.vertices(), g.vertices()[idx]
         for side in ("L", "R"):
@@ -105,6 +124,7 @@ def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True) -
             if both.any():
                 slides.append(step[both])
     out["mpjpe_mm"] = float(np.mean(np.concatenate(errs)) * 1000)
+    out["pa_mpjpe_mm"] = float(np.mean(np.concatenate(pa_errs)) * 1000)
     out["root_mm"] = float(np.mean(np.concatenate(roots)) * 1000)
     out["foot_slide_mm"] = float(np.mean(np.concatenate(slides)) * 1000) if slides else 0.0
     s = tf.fit.summary
@@ -123,7 +143,7 @@ def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True) -
                     "contact_any_onset_error_ms": c["any_events"]["onset_ms"],
                     "contact_any_offset_error_ms": c["any_events"]["offset_ms"]})  # fmt: skip
     # clocks and mounts against the simulators' truth (deterministic for the seed)
-    studio = simulate_studio(gt, seed=seed)
+    studio = simulate_studio(gt, seed=seed, preset=preset)
     clocks = tf.sync.report.get("clocks", {})
     trk = [v for k, v in clocks.items() if k.startswith("source:")]
     if trk:
