@@ -7,7 +7,8 @@
 what the script measures, the command that wrote the file, the machine, date and commit, its tables
 of main figures, and its goals, met or NOT met. A results file these docs expect (``EXPECTED``) that
 is missing is listed as not measured yet, with the command that measures it. ``docs/accuracy.md``
-holds the fit accuracy tables from ``fit_accuracy.json`` and ``fit_accuracy_calibrated.json``: one
+holds the fit accuracy tables from ``fit_accuracy.json``, ``fit_accuracy_realistic.json`` and
+``fit_accuracy_calibrated.json``: one
 row per take, the mean and worst over takes, and the goals.
 
 Both files depend on nothing but the results files (and, for a missing one, its script's docstring),
@@ -42,6 +43,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("body", "benchmarks/bench_body.py", ""),
     ("body_cuda", "benchmarks/bench_body.py --device all", "on a machine with a CUDA GPU"),
     ("scenes", "benchmarks/bench_scenes.py", ""),
+    ("scene_seeds", "benchmarks/bench_scene_seeds.py",
+     "on an otherwise idle machine (300 scenes at 30 fps: several hours on 2 cores)"),
     ("capture", "benchmarks/bench_capture.py", ""),
     ("decoders", "benchmarks/bench_decoders.py", ""),
     ("mvnx", "benchmarks/bench_mvnx.py", "with the `bench` extra installed (the `mvnx` package)"),
@@ -52,6 +55,10 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_calibrated", "benchmarks/bench_fit_accuracy.py --keep TAKES --calibration",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
+    ("fit_accuracy_realistic", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic",
+     "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
+    ("long_takes", "benchmarks/bench_long_takes.py --takes 60 600 --keep TAKES",
+     "with TAKES a folder that keeps the scenes and takes (the 10-minute scene takes about 10 minutes to make)"),
     ("collision", "benchmarks/bench_collision.py", ""),
     ("contacts", "benchmarks/bench_contacts.py", "with the `bench` extra installed (`rtree`, for trimesh)"),
     ("render", "benchmarks/bench_render.py", ""),
@@ -67,8 +74,9 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
 )
 
-ACCURACY = (("fit_accuracy", "Without a calibration take"),
-            ("fit_accuracy_calibrated", "With the studio day's calibration take"))  # fmt: skip
+ACCURACY = (("fit_accuracy", "Ideal devices, without a calibration take"),
+            ("fit_accuracy_realistic", "Realistic devices (every error drawn per take), without a calibration take"),
+            ("fit_accuracy_calibrated", "Ideal devices, with the studio day's calibration take"))  # fmt: skip
 
 INTRO = (
     "Each script under `benchmarks/` writes its latest figures to `benchmarks/results/<name>.json`, with the machine, "
@@ -79,7 +87,10 @@ INTRO = (
 )
 ACCURACY_INTRO = (
     "Takes are recorded in real time from the simulated studio over loopback transports, one per scene type and "
-    "seed, and scored against the scene's ground truth. With the calibration take, each device seed's calibration "
+    "seed, and scored against the scene's ground truth. The seeds were chosen once and the fit is never tuned on "
+    "them (it is tuned on seeds 1 and 2). `ideal` devices have the simulators' default errors; `realistic` ones draw "
+    "every error per take within published ranges ([presets](guides/simulation-presets.md)). Contact F1 compares "
+    "the fitted pair's per-vertex contacts with the ground truth's at the contact threshold. With the calibration take, each device seed's calibration "
     "take carries its tracker mounts and lags into every take of that seed; the mount columns are then the "
     "calibration take's. Speed figures: [benchmarks](benchmarks.md)."
 )
@@ -296,6 +307,7 @@ def benchmarks_md(results: dict[str, dict]) -> str:
 #: (header, column, the column shown beside it in the same cell or None, digits)
 ACC_COLUMNS = (
     ("MPJPE mm", "mpjpe_mm", None, 2),
+    ("PA-MPJPE mm", "pa_mpjpe_mm", None, 2),
     ("root mm", "root_mm", None, 2),
     ("MPJPE / root free mm", "mpjpe_free_mm", "root_free_mm", 1),
     ("max pen. mm (off)", "max_penetration_mm", "max_penetration_off_mm", 2),
@@ -304,6 +316,7 @@ ACC_COLUMNS = (
     ("mount °", "mount_rotation_error_deg", None, 2),
     ("mount offset mm", "mount_offset_error_mm", None, 1),
     ("slide mm", "foot_slide_mm", None, 2),
+    ("contact F1", "contact_f1", None, 3),
     ("fit s", "fit_s", None, 1),
     ("fit s exact", "fit_s_exact", None, 1),
     ("MPJPE exact mm", "mpjpe_exact_mm", None, 2),

@@ -62,7 +62,7 @@ def scene_make(scene_type, seed, fps, tempo, duration, approach_distance, height
 
     Example: dualhuman scene make --type hug --seed 1 --fps 30 --out hug.npz
     """
-    from dualhuman_builder.sim.scenes import SceneParams, contract_failures, make_scene
+    from dualhuman_builder.sim.scenes import SceneContractError, SceneParams, contract_failures, make_scene
 
     shapes = None
     if heights is not None:
@@ -77,6 +77,8 @@ def scene_make(scene_type, seed, fps, tempo, duration, approach_distance, height
                              tempo=tempo, duration=duration, fps=fps)  # fmt: skip
         with console.status(f"making {scene_type} seed {seed}...") as spinner:
             result = make_scene(params, log=lambda m: spinner.update(m))
+    except SceneContractError:
+        raise  # no draw met the contract: printed with its fix, exit 1
     except ValueError as e:
         raise click.UsageError(str(e)) from None
     out = out or Path(f"scene-{scene_type}-{seed}.npz")

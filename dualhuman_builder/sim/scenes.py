@@ -7,7 +7,9 @@ for each frame of a contact phase the palms are moved along the contact normal u
 mesh gap is :data:`CONTACT_GAP` (so hands meet without passing through each other). The result
 holds the :class:`~dualhuman_builder.tracks.InteractionSequence`, the signed distances of every
 vertex of each body to the other body (the ground-truth contacts), the phases of the motion and
-the stance masks of the feet.
+the stance masks of the feet. Every returned scene meets the quality contract
+(:func:`contract_failures`): a draw of the variation that breaks it is repaired where its type
+knows how, or drawn again (:func:`make_scene`), and none is returned broken.
 
 Layout: actor 0 starts at the origin facing +Z, actor 1 ``approach_distance`` metres away facing
 it (except where a type says otherwise); the floor is y = 0.
@@ -27,6 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.sim.ik import normalize, rot_y
 from dualhuman_builder.sim.performer import SIDES, ArmTrack, Controls, FootTrack, Performer
 from dualhuman_builder.sim.timeline import Step, foot_track, keyframes, window
@@ -36,8 +39,11 @@ SCENE_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_tu
 #: turns every tracked segment, so the trackers' mounts can be solved and carried over to the
 #: day's other takes (``dualhuman sync --mounts-from``). Not one of :data:`SCENE_TYPES`.
 CALIBRATION_TYPE = "calibration"
+#: A long take that chains the interactions with walking and idling between them
+#: (:mod:`dualhuman_builder.sim.session`; ``duration`` default 60 s). Not one of :data:`SCENE_TYPES`.
+SESSION_TYPE = "session"
 #: Every type :class:`SceneParams` accepts.
-ALL_TYPES = (*SCENE_TYPES, CALIBRATION_TYPE)
+ALL_TYPES = (*SCENE_TYPES, CALIBRATION_TYPE, SESSION_TYPE)
 #: Gap (m) the contact correction aims for between touching surfaces.
 CONTACT_GAP = 0.003
 #: Distance (m) under which a vertex counts as in contact (the contacts stage's default).
@@ -55,10 +61,18 @@ TORSO_HOLD_S = 0.2
 MAX_CORRECTION_PASSES = 14
 #: Band (m) within which signed distances are computed and stored; NaN beyond.
 DISTANCE_BAND = 0.05
+#: Most draws of a scene's variation :func:`make_scene` tries before it gives up on the quality
+#: contract (each a full generation; a draw breaks it rarely, so the chance that all of them do is small).
+MAX_DRAWS = 8
 SCENE_VERSION = 1
 #: Version of the generator: bumped whenever the same parameters generate different scenes, so
 #: that cached ``scene`` stages recompute (the changes are in CHANGELOG.md).
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
+
+
+class SceneContractError(DualhumanError, ValueError):
+    """No draw of a scene's variation met the quality contract (:func:`make_scene`). A ValueError
+    too, as every other refusal of a scene's parameters is."""
 
 
 @dataclass
@@ -207,13 +221,62 @@ def _stature_of(model, shape) -> float:
     return stature(model, model.shape_tensor(shape))
 
 
-def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | None = None) -> Scene:
-    """Generate the scene ``params`` describes (deterministic for a given seed)."""
+def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | None = None,
+               max_draws: int = MAX_DRAWS) -> Scene:  # fmt: skip
+    """Generate the scene ``params`` describes (deterministic for a given seed), meeting the quality
+    contract (:func:`contract_failures`) or raising :class:`SceneContractError`.
+
+    The variation (the two adults, unless ``params.shapes`` gives them, and each choreography's
+    random spacing and timing) is drawn from ``seed``; a draw whose scene breaks the contract is
+    replaced by the next, from an rng derived from ``(seed, draw)``, up to ``max_draws`` draws.
+    ``stats["draws"]`` records how many it took (1: the seed's own draw)."""
     from dualhuman_builder.body.model import get_body_model
 
+    if params.type == SESSION_TYPE:  # meetings generated here, chained by the session
+        from dualhuman_builder.sim.session import make_session
+
+        return make_session(params, model=model, log=log)
+    if max_draws < 1:
+        raise ValueError(f"max_draws must be at least 1, not {max_draws}")
     t_start = time.perf_counter()
     model = model or get_body_model()
-    rng = np.random.default_rng(params.seed)
+    broken = []
+    for draw in range(max_draws):
+        seed = params.seed if draw == 0 else [params.seed, draw]
+        scene = _generate(params, model, np.random.default_rng(seed), log)
+        failures = contract_failures(scene.stats)
+        repaired = False
+        if failures and _repairs(params.type):  # the same draw again, with the choreography's repair
+            if log:
+                log(f"draw {draw + 1} breaks the quality contract ({'; '.join(failures)}); repairing it")
+            scene = _generate(params, model, np.random.default_rng(seed), log, repair=True)
+            failures, repaired = contract_failures(scene.stats), True
+        if not failures:
+            scene.stats = {"generation_s": round(time.perf_counter() - t_start, 2), "draws": draw + 1,
+                           "repaired": repaired, **scene.stats}  # fmt: skip
+            return scene
+        broken.append(failures)
+        if log:
+            log(f"draw {draw + 1} of {max_draws} breaks the quality contract ({'; '.join(failures)}); drawing again")
+    raise SceneContractError(
+        f"no {params.type} scene for seed {params.seed} at {params.fps:g} fps met the quality contract in {max_draws} "
+        f"draws (" + " | ".join(f"draw {k + 1}: {'; '.join(f)}" for k, f in enumerate(broken)) + ")",
+        fix="try another seed, other shapes or a higher fps, or allow more draws (make_scene(..., max_draws=N))")
+
+
+def _repairs(kind: str) -> bool:
+    """Whether the choreography of ``kind`` takes ``repair=True``: a variant of its motion that fixes
+    what breaks the contract on some draws, tried on a draw that breaks it before drawing again."""
+    import inspect
+
+    return "repair" in inspect.signature(CHOREOGRAPHIES[kind]).parameters
+
+
+def _generate(params: SceneParams, model, rng: np.random.Generator, log: Callable[[str], None] | None,
+              repair: bool = False) -> Scene:  # fmt: skip
+    """One draw of the scene: the shapes (unless given) and the choreography's variation from ``rng``
+    (``repair``: the choreography's repaired variant, see :func:`_repairs`), then IK, contact
+    correction and penetration repair; ``stats`` holds :func:`quality_summary`."""
     shapes = params.shapes or random_adult_shapes(model, rng)
     if params.type == "dance_turn" and params.shapes is None:
         shapes = tuple(sorted(shapes, key=lambda s: -_stature_of(model, s)))  # the taller one leads
@@ -223,7 +286,8 @@ def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | Non
     if duration < natural - 1e-9:
         raise ValueError(f"a {params.type} at tempo {params.tempo} lasts {natural:.2f} s; duration {duration} s is too short")
     t = np.arange(int(round(duration * params.fps))) / params.fps
-    chor = CHOREOGRAPHIES[params.type](t * params.tempo, performers, params, rng)
+    extra = {"repair": True} if repair else {}
+    chor = CHOREOGRAPHIES[params.type](t * params.tempo, performers, params, rng, **extra)
     chor = _rescale_time(chor, params.tempo)
 
     poses = [p.solve(c) for p, c in zip(performers, chor.controls)]
@@ -237,12 +301,20 @@ def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | Non
             break
     seq = _sequence(model, performers, poses, chor, params)
     distances = ground_truth_distances(seq)
-    poses, changed = _resolve_by_swivel(model, performers, chor, poses, seq, distances, log)
-    if len(changed):
+    # elbow swivels out of the partner; passes after the first only while the contract's penetration
+    # is still broken (each starts from the swivels the earlier ones chose)
+    from dualhuman_builder.sim.quality import penetration_depth
+
+    for k in range(SWIVEL_PASSES):
+        if k and penetration_depth(distances).max() <= MAX_PENETRATION_M:
+            break
+        poses, changed = _resolve_by_swivel(model, performers, chor, poses, seq, distances, log)
+        if not len(changed):
+            break
         seq = _sequence(model, performers, poses, chor, params)
         distances = ground_truth_distances(seq, frames=changed, previous=distances)
     scene = Scene(params, seq, distances, chor.stance, chor.phases, chor.contact_phases)
-    scene.stats = {"generation_s": round(time.perf_counter() - t_start, 2), **quality_summary(scene)}
+    scene.stats = quality_summary(scene)
     return scene
 
 
@@ -459,6 +531,8 @@ def _make_reachable(performers, chor: Choreography, poses, frac: float = 0.95) -
 
 #: Elbow swivel angles (radians) tried when an arm passes through the partner.
 SWIVEL_CANDIDATES = (0.0, 0.3, -0.3, 0.7, -0.7, 1.2, -1.2)
+#: Most passes of :func:`_resolve_by_swivel` (a pass sees the other arms where the earlier passes put them).
+SWIVEL_PASSES = 3
 
 
 def _arm_vertices(model, side: str) -> np.ndarray:
@@ -622,7 +696,10 @@ def describe_scene(scene: Scene) -> dict:
                      f"{len(stats.get('joint_limit_violations', {}))} joint-limit violations")  # fmt: skip
         lines.append("quality contract: " + ("met" if not data["contract_failures"] else "BROKEN: " + "; ".join(data["contract_failures"])))
         if "generation_s" in stats:
-            lines.append(f"generated in {stats['generation_s']:.1f} s")
+            draws = stats.get("draws", 1)
+            which = "the seed's own draw" if draws == 1 else f"draw {draws} (the earlier ones broke the contract)"
+            how = ", with its type's repair" if stats.get("repaired") else ""
+            lines.append(f"generated in {stats['generation_s']:.1f} s, on {which}{how}")
     return {"summary": summary, "lines": lines, "data": data}
 
 
@@ -802,8 +879,10 @@ def high_five(t, perfs, params, rng) -> Choreography:
                         ("Two people walk up to each other and give each other a high five.",))  # fmt: skip
 
 
-def push(t, perfs, params, rng) -> Choreography:
-    """A walks up and shoves B in the chest with both palms; B staggers back a step."""
+def push(t, perfs, params, rng, repair: bool = False) -> Choreography:
+    """A walks up and shoves B in the chest with both palms; B staggers back a step. ``repair``
+    (a draw whose palms lose B's chest as it goes back): A's pelvis follows through over its
+    planted feet by what its arms fall short of the chest (:func:`_follow_through`)."""
     pa, pb = perfs
     d0 = params.approach_distance or 1.9
     reach = 0.45 * pa.stature / 1.75
@@ -822,18 +901,59 @@ def push(t, perfs, params, rng) -> Choreography:
     b_lean = np.outer(keyframes(t, [tc, tc + 0.25, tp + 0.7], [0.0, -0.18, 0.0]), [1.0, 0.0, 0.0])
     controls, stance = _controls(t, walks, heads, perfs, [a_lean, b_lean])
     w = keyframes(t, [0.9, tc, tp, tp + 0.6], [0.0, 1.0, 1.0, 0.0])
-    specs = []
-    for side, sign in SIDES.items():
-        # A's palms on B's chest, following B's chest as it is shoved back and leans away
-        off = pb.surface_offset("front", -sign * 0.09, chest_up)  # B's left/right mirrored to A's
-        palm = pb.attached_point(controls[1], "spine01", off)
+
+    def reach_out(c):  # A's palms on B's chest, following B's chest as it is shoved back and leans away
+        for side, sign in SIDES.items():
+            off = pb.surface_offset("front", -sign * 0.09, chest_up)  # B's left/right mirrored to A's
+            palm = pb.attached_point(controls[1], "spine01", off)
+            c.arms[side] = _arm(pa, c, side, w, palm, [sign * 0.5, -1.0, -0.3], [0.0, 0.0, 1.0],
+                                [-sign * 0.2, 1.0, 0.1])  # fmt: skip
+
+    reach_out(controls[0])
+    if repair:
         c = controls[0]
-        c.arms[side] = _arm(pa, c, side, w, palm, [sign * 0.5, -1.0, -0.3], [0.0, 0.0, 1.0], [-sign * 0.2, 1.0, 0.1])
+        c.root = _follow_through(t, pa, c, _mask(t, (tc, tp)), tp, 0.6)
+        c.arms = {"L": None, "R": None}
+        reach_out(c)
+    specs = []
+    for side in SIDES:
         specs.append(ContactSpec(0, side, _mask(t, (tc, tp)), np.tile([0.0, 0.0, 1.0], (len(t), 1)),
                                  guard=_mask(t, (tc - 0.4, tp + 0.6))))  # fmt: skip
     return Choreography(controls, stance, {"approach": (0.2, 1.4), "shove": (tc, tp), "stagger": (tc + 0.05, tc + 0.75)},
                         [(tc + 0.02, tp - 0.02)], specs, ("push",),
                         ("One person walks up to another and pushes them away with both hands.",))  # fmt: skip
+
+
+def _follow_through(t, perf: Performer, c: Controls, frames: np.ndarray, t_end: float, ease_s: float,
+                    margin: float = 0.01) -> np.ndarray:  # fmt: skip
+    """A pelvis track ``(T, 3)`` that carries ``c``'s palms onto their targets on ``frames (T,)``:
+    ``c.root`` moved forward (along the heading) by the most either palm's solved position falls
+    short of its target there (plus ``margin`` m), never moving back during those frames, and back
+    over ``ease_s`` s after ``t_end``; widened and smoothed over 0.15 s (so it starts a little before
+    the palms need it, without a jolt); lowered where the planted feet need it
+    (:meth:`~.performer.Performer.reachable_root`)."""
+    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+
+    from dualhuman_builder.sim.timeline import minjerk
+
+    local, transl = perf.solve(c)
+    heads, glob = perf.sk.fk(local, transl)
+    ahead = perf.body_dir(c.heading, (0.0, 0.0, 1.0))
+    short = np.zeros(len(t))
+    for side in SIDES:
+        i = perf.sk.index(f"wrist.{side}")
+        palm = heads[:, i] + np.einsum("tij,j->ti", glob[:, i], perf.hand[side].palm_offset)
+        short = np.maximum(short, ((c.arms[side].palm - palm) * ahead).sum(-1))
+    idx = np.flatnonzero(frames)
+    follow = np.zeros(len(t))
+    if len(idx) and short[idx].max() > 0:
+        follow[idx] = np.maximum.accumulate(np.maximum(short[idx] + margin, 0.0))
+        after = t > t[idx[-1]]
+        follow[after] = follow[idx[-1]] * (1.0 - minjerk((t[after] - t_end) / ease_s))
+        width = max(1, int(round(0.15 / (t[1] - t[0]))))
+        follow = gaussian_filter1d(maximum_filter1d(follow, 2 * width + 1), width / 2.0)
+    root = np.asarray(c.root) + follow[:, None] * ahead
+    return perf.reachable_root(Controls(root, c.heading, c.feet), fps=1.0 / (t[1] - t[0]))
 
 
 def _step_back(t, perf: Performer, z: float, shove: float, t0: float, t1: float):
@@ -886,10 +1006,12 @@ def pat_on_back(t, perfs, params, rng) -> Choreography:
                         ("A person walks up beside another and pats them on the back.",))  # fmt: skip
 
 
-def hug(t, perfs, params, rng) -> Choreography:
+def hug(t, perfs, params, rng, repair: bool = False) -> Choreography:
     """Walk up and hug. Partners within 8 cm of each other's height hug criss-cross (each right arm
     over the partner's left shoulder, each left arm under the partner's right arm); otherwise the
-    taller one's arms go over the shoulders and the shorter one's under the arms. Palms rest on the
+    taller one's arms go over the shoulders and the shorter one's under the arms. ``repair`` (a
+    draw where an arm reaching in passes through the partner's arm still hanging there): the
+    over-arms lead in and the under-arms follow beneath them. Palms rest on the
     partner's back near its sides (where arms of anny's length reach), torsos together, heads side
     by side (each turned to its own left). The torsos' gap is corrected by moving the pelvises."""
     pa, pb = perfs
@@ -926,9 +1048,11 @@ def hug(t, perfs, params, rng) -> Choreography:
                 "over": (0.78, (SIDES[side], 0.4, -0.2), (SIDES[side] * 0.55, 0.83, 0.0)),
                 "under": (0.66, (SIDES[side], -0.9, -0.2), (SIDES[side] * 0.83, -0.55, 0.0)),
             }[role]
-            # the under-arm leads in and the over-arm follows from above; after the embrace the
-            # over-arm lifts away first, then the under-arm slides out
-            w = window(t, 1.0, 4.9, 0.6) if role == "under" else window(t, 1.25, 4.45, 0.55)
+            # the under-arm leads in and the over-arm follows from above (repaired: the over-arm
+            # leads, the under-arm follows beneath it); after the embrace the over-arm lifts away
+            # first, then the under-arm slides out
+            first, second = (1.25, 1.0) if repair else (1.0, 1.25)
+            w = window(t, first, 4.9, 0.6) if role == "under" else window(t, second, 4.45, 0.55)
             # the palm goes on the partner's back near its side, or — for an arm short for the
             # partner's girth (it wraps round, so it needs slack beyond the straight line) — on
             # the side of the partner's ribs

@@ -151,15 +151,19 @@ def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[t
     stages then read that recording. Returns ``{stage: StageResult}``."""
     from dualhuman_builder.capture.stage import run_capture
     from dualhuman_builder.sim.presets import check_preset
-    from dualhuman_builder.sim.scenes import NATURAL_DURATION
+    from dualhuman_builder.sim.scenes import NATURAL_DURATION, SESSION_TYPE
+    from dualhuman_builder.sim.session import DEFAULT_DURATION_S
 
     check_preset(preset)
     calibration = params["type"] == "calibration"
     if take not in ws.takes():
         ws.add_take(take, rig="sim", actors=[a[0] for a in actors], meta={"simulated": True, "calibration": calibration})
     if sequence not in [s.name for s in ws.sequences(take)]:
-        seconds = params.get("duration") or NATURAL_DURATION[params["type"]]
-        ws.add_sequence(take, sequence, 0, int(round(seconds * params["fps"])), labels=(params["type"],))
+        if params["type"] == SESSION_TYPE:  # many meetings: each one's type is in the scene's phases
+            seconds, labels = params.get("duration") or DEFAULT_DURATION_S, ()
+        else:
+            seconds, labels = params.get("duration") or NATURAL_DURATION[params["type"]], (params["type"],)
+        ws.add_sequence(take, sequence, 0, int(round(seconds * params["fps"])), labels=labels)
     results = {"scene": run_scene(ws, take, sequence, params, actors, shapes, model=model, force=force, log=log)}
     results["devices"] = run_devices(ws, take, sequence, params["seed"], force=force, log=log, preset=preset)
     scene_path = SCENE.artifact(ws, take, SCENE_FILE, sequence)
