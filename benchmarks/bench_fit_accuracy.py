@@ -230,8 +230,8 @@ def main() -> None:
     regions = region_scores(rows)
     print("\ncontacts per body region over all takes (per vertex, both actors):")
     print(f"  {'region':<18}{'precision':>10}{'recall':>10}{'F1':>8}{'true':>9}")
-    for name, r in regions.items():
-        print(f"  {name:<18}{r['precision']:10.3f}{r['recall']:10.3f}{r['f1']:8.3f}{r['tp'] + r['fn']:9d}")
+    for region, r in regions.items():
+        print(f"  {region:<18}{r['precision']:10.3f}{r['recall']:10.3f}{r['f1']:8.3f}{r['tp'] + r['fn']:9d}")
     print("\ngoals (worst take):")
     upper, lower = GOALS_BY_PRESET[args.preset]
     bounds = [(c, "<=", b) for c, b in upper.items()] + [(c, ">=", b) for c, b in lower.items()]
@@ -249,8 +249,8 @@ def main() -> None:
                     f"summary.{c}.worst"] for c in cols if c in LABELS])  # fmt: skip
     region_table = Table("fitted-pair contacts per body region, all takes pooled (per vertex, both actors)",
                          ["region", "precision", "recall", "F1"],
-                         [[name] + [f"contact_regions.{name}.{k}" for k in ("precision", "recall", "f1")]
-                          for name in regions])  # fmt: skip
+                         [[region] + [f"contact_regions.{region}.{k}" for k in ("precision", "recall", "f1")]
+                          for region in regions])  # fmt: skip
     params = {"types": args.types, "seeds": args.seeds, "preset": args.preset, "fps": args.fps, "speed": args.speed,
               "calibration": args.calibration, "compare_exact": args.compare_exact,
               "keep": str(args.keep) if args.keep else None}  # fmt: skip

@@ -96,14 +96,15 @@ class PeakMemory:
 # ------------------------------------------------------------------ scenes and takes
 def session_scene(seed: int, duration: float, fps: float, model, log=print):
     """``(scene, scene_path, generation_s)``: the cached session scene, or a new one (then cached)."""
-    from dualhuman_builder.sim.scenes import Scene, SceneParams, make_scene
+    from dualhuman_builder.sim.generate import generate_scene
+    from dualhuman_builder.sim.scenes import Scene, SceneParams
 
     path = CACHE / f"session-{seed}-{duration:g}s-{fps:g}fps.scene.npz"
     if path.is_file():
         scene = Scene.load(path)
         return scene, path, scene.stats.get("generation_s")
     t0 = time.perf_counter()
-    scene = make_scene(SceneParams(type="session", seed=seed, duration=duration, fps=fps), model=model,
+    scene = generate_scene(SceneParams(type="session", seed=seed, duration=duration, fps=fps), model=model,
                        log=lambda m: log(f"  [{time.perf_counter() - t0:6.0f} s] {m}"))  # fmt: skip
     CACHE.mkdir(parents=True, exist_ok=True)
     scene.save(path)
@@ -159,13 +160,13 @@ def per_frame_errors(tf, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(times_s, joint_error, root_error)``: per fitted frame, the mean 22-joint position error
     and the pelvis-centre error (m) over both actors, against the scene (joints by forward
     kinematics only: no vertices, so a 10-minute take costs no mesh memory)."""
-    from dualhuman_builder.evaluation.fit import _gt_frames
+    from dualhuman_builder.evaluation.contacts import gt_frames
 
     gt = scene.sequence
     fit = tf.fit.sequence
     actors = fit.actors if hasattr(fit, "actors") else fit
     times = np.asarray(tf.sync.times_s, np.float64)
-    idx = _gt_frames(times, gt.fps, gt.num_frames)
+    idx = gt_frames(times, gt.fps, gt.num_frames)
     joint, root = [], []
     for k, track in enumerate(actors):
         g = gt.actors[k]

@@ -62,7 +62,8 @@ def scene_make(scene_type, seed, fps, tempo, duration, approach_distance, height
 
     Example: dualhuman scene make --type hug --seed 1 --fps 30 --out hug.npz
     """
-    from dualhuman_builder.sim.scenes import SceneContractError, SceneParams, contract_failures, make_scene
+    from dualhuman_builder.sim.generate import generate_scene
+    from dualhuman_builder.sim.scenes import SceneContractError, SceneParams, contract_failures
 
     shapes = None
     if heights is not None:
@@ -76,7 +77,7 @@ def scene_make(scene_type, seed, fps, tempo, duration, approach_distance, height
         params = SceneParams(type=scene_type, seed=seed, shapes=shapes, approach_distance=approach_distance,
                              tempo=tempo, duration=duration, fps=fps)  # fmt: skip
         with console.status(f"making {scene_type} seed {seed}...") as spinner:
-            result = make_scene(params, log=lambda m: spinner.update(m))
+            result = generate_scene(params, log=lambda m: spinner.update(m))
     except SceneContractError:
         raise  # no draw met the contract: printed with its fix, exit 1
     except ValueError as e:

@@ -24,6 +24,15 @@ from dualhuman_builder.contacts.compute import (
 )
 
 
+def gt_frames(times_s: np.ndarray, gt_fps: float, n: int) -> np.ndarray:
+    """Ground-truth frame index ``(T,)`` of each fitted frame time ``times_s`` (s) in a scene of ``n``
+    frames at ``gt_fps``; the fit's frames must fall on the scene's (ValueError otherwise)."""
+    idx = np.round(np.asarray(times_s) * gt_fps).astype(np.int64)
+    if np.any(np.abs(idx / gt_fps - times_s) > 1e-6):
+        raise ValueError("evaluate with the fit fps equal to the scene fps (frames must coincide)")
+    return np.clip(idx, 0, n - 1)
+
+
 def contacts_for_scene(scene, threshold_m: float | None = None, band_m: float | None = None,
                        topology: ContactTopology | None = None) -> tuple[ContactResult, dict[str, float]]:
     """Contacts of a ground-truth :class:`~dualhuman_builder.sim.scenes.Scene` (or a path to a
@@ -155,13 +164,12 @@ def take_fit_contacts(tf, scene, threshold_m: float | None = None, topology: Con
     """:func:`fit_contact_scores` of a fitted take ``tf`` (a :class:`~dualhuman_builder.fit.process.TakeFit`)
     against its ground-truth ``scene``, on the scene frames the fit's frames fall on (the fit's fps
     must equal the scene's, as for :func:`~dualhuman_builder.evaluation.fit.evaluate_take_fit`)."""
-    from dualhuman_builder.evaluation.fit import _gt_frames
 
     gt = scene.sequence
     fit = tf.fit.sequence
     actors = fit.actors if hasattr(fit, "actors") else fit
     if len(actors) != 2 or len(gt.actors) != 2:
         raise ValueError(f"contacts need two actors; the fit has {len(actors)}, the scene {len(gt.actors)}")
-    idx = _gt_frames(tf.sync.times_s, gt.fps, gt.num_frames)
+    idx = gt_frames(tf.sync.times_s, gt.fps, gt.num_frames)
     return fit_contact_scores([a.vertices() for a in actors], [a.vertices()[idx] for a in gt.actors], gt.fps,
                               threshold_m=threshold_m, topology=topology)  # fmt: skip

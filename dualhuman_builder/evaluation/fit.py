@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.evaluation.contacts import gt_frames
 
 
 def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: float = 30.0,
@@ -42,13 +43,14 @@ def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: 
 
     from dualhuman_builder.capture.recording import capture_take, plan_capture
     from dualhuman_builder.sim.presets import check_preset, draw_device_errors
-    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+    from dualhuman_builder.sim.generate import generate_scene
+    from dualhuman_builder.sim.scenes import SceneParams
     from dualhuman_builder.sim.stage import device_url
 
     check_preset(preset)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scene = make_scene(SceneParams(type=scene_type, seed=seed, fps=fps, duration=duration), model=model)
+    scene = generate_scene(SceneParams(type=scene_type, seed=seed, fps=fps, duration=duration), model=model)
     scene_path = scene.save(out / f"{scene_type}-{seed}.scene.npz")
     name = f"{scene_type}-{seed}" if preset == "ideal" else f"{scene_type}-{seed}-{preset}"
     take = out / f"{name}.mcap"
@@ -59,13 +61,6 @@ def record_simulated_take(scene_type: str, seed: int, out_dir: str | Path, fps: 
     if res.error:
         raise RuntimeError(f"recording the simulated take failed: {res.error}")
     return take, scene
-
-
-def _gt_frames(times_s: np.ndarray, gt_fps: float, n: int) -> np.ndarray:
-    idx = np.round(np.asarray(times_s) * gt_fps).astype(np.int64)
-    if np.any(np.abs(idx / gt_fps - times_s) > 1e-6):
-        raise ValueError("evaluate with the fit fps equal to the scene fps (frames must coincide)")
-    return np.clip(idx, 0, n - 1)
 
 
 def procrustes_aligned(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -103,7 +98,7 @@ def evaluate_take_fit(tf, scene, seed: int, model=None, contacts: bool = True, p
     gt = scene.sequence
     fit = tf.fit.sequence
     actors = fit.actors if hasattr(fit, "actors") else fit
-    idx = _gt_frames(tf.sync.times_s, gt.fps, gt.num_frames)
+    idx = gt_frames(tf.sync.times_s, gt.fps, gt.num_frames)
     out: dict = {"frames": int(len(idx))}
     errs, pa_errs, roots, slides = [], [], [], []
     soles = sole_vertices(model)

@@ -232,10 +232,9 @@ def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | Non
     ``stats["draws"]`` records how many it took (1: the seed's own draw)."""
     from dualhuman_builder.body.model import get_body_model
 
-    if params.type == SESSION_TYPE:  # meetings generated here, chained by the session
-        from dualhuman_builder.sim.session import make_session
-
-        return make_session(params, model=model, log=log)
+    if params.type == SESSION_TYPE:
+        raise ValueError("a session is made of interaction scenes: make it with "
+                         "dualhuman_builder.sim.generate.generate_scene (or sim.session.make_session)")  # fmt: skip
     if max_draws < 1:
         raise ValueError(f"max_draws must be at least 1, not {max_draws}")
     t_start = time.perf_counter()

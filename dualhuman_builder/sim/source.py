@@ -44,7 +44,8 @@ class SimSource(Source):
 
     def __init__(self, url: str, progress: Callable[[str], None] | None = None):
         from dualhuman_builder.sim.presets import PRESETS
-        from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams, make_scene
+        from dualhuman_builder.sim.generate import generate_scene
+        from dualhuman_builder.sim.scenes import ALL_TYPES, Scene, SceneParams
         from dualhuman_builder.sim.studio import simulate_studio
 
         super().__init__(url)
@@ -63,7 +64,7 @@ class SimSource(Source):
                                  duration=number_param(query, "duration", float, None),
                                  approach_distance=number_param(query, "approach", float, None))  # fmt: skip
             try:
-                self.scene = make_scene(params, log=progress)
+                self.scene = generate_scene(params, log=progress)
             except ValueError as e:
                 raise SourceError(f"{url!r}: {e}", fix="adjust the sim:// parameters") from None
         elif parts.path:

@@ -75,11 +75,12 @@ def run_scene(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple
 
     def compute(out):
         from dualhuman_builder.body.model import get_body_model
-        from dualhuman_builder.sim.scenes import SceneParams, make_scene
+        from dualhuman_builder.sim.generate import generate_scene
+        from dualhuman_builder.sim.scenes import SceneParams
 
         body = model or get_body_model()
         log(f"generating a {params['type']} (seed {params['seed']})...")
-        sc = make_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in actors), **params),
+        sc = generate_scene(SceneParams(shapes=(shapes[0], shapes[1]), names=tuple(a[0] for a in actors), **params),
                         model=body, log=log)  # fmt: skip
         sc.save(out.path(SCENE_FILE))
         sc.sequence.save(out.path(SEQUENCE_FILE))

@@ -12,9 +12,10 @@ DURATION = 20.0
 
 @pytest.fixture(scope="module")
 def session():
-    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+    from dualhuman_builder.sim.generate import generate_scene
+    from dualhuman_builder.sim.scenes import SceneParams
 
-    return make_scene(SceneParams(type="session", seed=3, duration=DURATION, fps=FPS))
+    return generate_scene(SceneParams(type="session", seed=3, duration=DURATION, fps=FPS))
 
 
 def _joins(scene) -> list[int]:
@@ -70,12 +71,13 @@ def test_session_joins_are_continuous(session):
 
 
 def test_session_refuses_what_it_cannot_hold():
-    from dualhuman_builder.sim.scenes import SceneParams, make_scene
+    from dualhuman_builder.sim.generate import generate_scene
+    from dualhuman_builder.sim.scenes import SceneParams
 
     with pytest.raises(ValueError, match="at least"):
-        make_scene(SceneParams(type="session", seed=0, duration=5.0, fps=FPS))
+        generate_scene(SceneParams(type="session", seed=0, duration=5.0, fps=FPS))
     with pytest.raises(ValueError, match="approach distance"):
-        make_scene(SceneParams(type="session", seed=0, approach_distance=1.0, fps=FPS))
+        generate_scene(SceneParams(type="session", seed=0, approach_distance=1.0, fps=FPS))
 
 
 def test_sim_url_names_a_session():
