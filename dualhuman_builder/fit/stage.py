@@ -150,7 +150,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
             log(f"WARNING: fitted without trackers: {without} (the suit's position drift remains)")
         for a in inputs:
             if a.unmeasured:
-                log(f"WARNING: {a.name}: segments no sensor measured, weight 0 in the fit's input: {', '.join(a.unmeasured)}")
+                log(f"WARNING: {a.name}: segments no sensor measured, held by 1 % of the orientation term: {', '.join(a.unmeasured)}")
         return summary
 
     params = {k: getattr(config, k) for k in config.__dataclass_fields__}
