@@ -654,11 +654,16 @@ def _hand_vertices(model, side: str) -> np.ndarray:
 def quality_summary(scene: Scene) -> dict[str, float]:
     """The scene contract's measures: max penetration (m), max stance-foot slide per frame (m),
     min gap during contact phases (m), share of contact-phase frames with contact."""
-    from dualhuman_builder.sim.quality import foot_sliding, joint_limit_violations, penetration_depth
+    from dualhuman_builder.sim.quality import foot_sliding, joint_limit_violations
 
-    pen = penetration_depth(scene.distances)
+    # a chunk of frames at a time, so a long take (a 10-minute session) needs no float32 copy of its (T, V) distances
+    T, chunk = scene.sequence.num_frames, 1024
+    min_d = np.empty(T, np.float32)
+    for s in range(0, T, chunk):
+        rows = [np.nan_to_num(d[s : s + chunk].astype(np.float32), nan=np.inf).min(1) for d in scene.distances]
+        min_d[s : s + chunk] = np.minimum(*rows)
+    pen = np.maximum(-np.where(np.isfinite(min_d), min_d, 0.0), 0.0)  # the deepest vertex inside the other body
     mask = scene.contact_phase_mask()
-    min_d = np.nanmin(np.stack([np.nan_to_num(d.astype(np.float32), nan=np.inf).min(1) for d in scene.distances]), axis=0)
     in_contact = min_d < CONTACT_THRESHOLD
     slide = max(foot_sliding(tr, scene.stance[i]) for i, tr in enumerate(scene.sequence.actors))
     return {

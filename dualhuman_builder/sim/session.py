@@ -42,7 +42,7 @@ import numpy as np
 from dualhuman_builder.sim.ik import rot_y
 from dualhuman_builder.sim.performer import SIDES, Controls, FootTrack, Performer
 from dualhuman_builder.sim.scenes import (CONTACT_THRESHOLD, DISTANCE_BAND, NATURAL_DURATION, SCENE_TYPES, Scene,
-                                          SceneParams, _params_dict, contract_failures, make_scene,
+                                          SceneParams, _params_dict, contract_failures, make_scene, quality_summary,
                                           random_adult_shapes)  # fmt: skip
 from dualhuman_builder.sim.timeline import Step, foot_track, keyframes, minjerk, window
 
@@ -237,36 +237,12 @@ def make_session(params: SceneParams, model=None, log: Callable[[str], None] | N
                                     + ", ".join(r["type"].replace("_", " ") for r in records) + ".",),
                               meta={"scene": _params_dict(params)})  # fmt: skip
     scene = Scene(params, seq, (dist[0], dist[1]), stance, phases, contact_phases)
-    scene.stats = {"generation_s": round(time.perf_counter() - t_start, 2), **chunked_quality_summary(scene),
+    scene.stats = {"generation_s": round(time.perf_counter() - t_start, 2), **quality_summary(scene),
                    "interactions": records}  # fmt: skip
     failures = contract_failures(scene.stats)
     if failures:
         raise ValueError(f"session seed {params.seed} breaks the scene contract: " + "; ".join(failures))
     return scene
-
-
-def chunked_quality_summary(scene: Scene, chunk: int = 1024) -> dict:
-    """:func:`~dualhuman_builder.sim.scenes.quality_summary` computed ``chunk`` frames at a time, so
-    that a 10-minute scene needs no float32 copy of its ``(T, V)`` distances (same keys, same values)."""
-    from dualhuman_builder.sim.quality import foot_sliding, joint_limit_violations
-
-    T = scene.sequence.num_frames
-    min_d = np.empty(T, np.float32)
-    for s in range(0, T, chunk):
-        rows = [np.nan_to_num(d[s:s + chunk].astype(np.float32), nan=np.inf).min(1) for d in scene.distances]
-        min_d[s:s + chunk] = np.minimum(*rows)
-    pen = np.maximum(-np.where(np.isfinite(min_d), min_d, 0.0), 0.0)
-    mask = scene.contact_phase_mask()
-    in_contact = min_d < CONTACT_THRESHOLD
-    slide = max(foot_sliding(tr, scene.stance[i]) for i, tr in enumerate(scene.sequence.actors))
-    return {
-        "max_penetration_m": float(pen.max()),
-        "max_stance_slide_m": float(slide),
-        "contact_frames_share": float(in_contact[mask].mean()) if mask.any() else 1.0,
-        "min_gap_in_contact_phase_m": float(min_d[mask].max()) if mask.any() else 0.0,
-        "joint_limit_violations": {f"actor{i} {k}": round(v, 1) for i, tr in enumerate(scene.sequence.actors)
-                                   for k, v in joint_limit_violations(tr).items()},  # fmt: skip
-    }
 
 
 # ============================================================================ meetings
