@@ -252,10 +252,18 @@ _CONVERT_OPTIONS = [
 ]  # fmt: skip
 
 
-def _convert_options(f):
-    for deco in reversed(_CONVERT_OPTIONS):
-        f = deco(f)
-    return f
+def _with(options: list):
+    """A decorator applying ``options`` (click decorators) in their listed order, so commands share them."""
+
+    def apply(f):
+        for deco in reversed(options):
+            f = deco(f)
+        return f
+
+    return apply
+
+
+_convert_options = _with(_CONVERT_OPTIONS)
 
 
 @export.command("interhuman")
@@ -321,10 +329,7 @@ _IMPORT_OPTIONS = [
 ]  # fmt: skip
 
 
-def _import_options(f):
-    for deco in reversed(_IMPORT_OPTIONS):
-        f = deco(f)
-    return f
+_import_options = _with(_IMPORT_OPTIONS)
 
 
 @export.command("import-humanml3d")
