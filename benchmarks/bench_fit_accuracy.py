@@ -33,6 +33,7 @@ located at every evaluation and adds ``fit_s_exact`` and ``mpjpe_exact_mm``, plu
 
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --compare-exact
     .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --calibration
+    .venv/bin/python benchmarks/bench_fit_accuracy.py --keep takes/ --no-trackers --preset realistic
 
 ``--calibration`` follows the studio-day protocol: per device seed it also records (or, with
 ``--keep``, reuses ``DIR/calibration-<seed>/``) a ``calibration`` take of the same devices, syncs
@@ -41,6 +42,9 @@ it (printing its own mounts' errors against the simulated ones), and carries its
 --mounts-from`` in a workspace). The mount columns are then the calibration take's mounts, and the
 clock column the take's own lag averaged with the calibration's. Writes
 ``benchmarks/results/fit_accuracy_calibrated.json`` unless ``--out`` says otherwise.
+
+``--no-trackers`` fits every take without its trackers, with the collision term, and writes the same
+table to ``fit_accuracy[_<preset>]_no_trackers.json``: what the trackers buy under that preset.
 """
 
 from __future__ import annotations
@@ -111,14 +115,14 @@ def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
 
 
 def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False,
-             mounts_from=None, preset: str = "ideal") -> dict:  # fmt: skip
+             mounts_from=None, preset: str = "ideal", trackers: bool = True) -> dict:  # fmt: skip
     from dualhuman_builder.evaluation.fit import evaluate_take_fit
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.process import process_take
 
     take, scene = recorded(scene_type, seed, fps, speed, tmp, model, preset)
     t0 = time.perf_counter()
-    tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from)
+    tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from, use_trackers=trackers)
     wall = time.perf_counter() - t0
     ev = evaluate_take_fit(tf, scene, seed=seed, model=model, preset=preset)
     extra = {}
@@ -180,10 +184,15 @@ def main() -> None:
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
+    ap.add_argument("--no-trackers", action="store_true",
+                    help="fit without the trackers (the collision term kept): what the trackers buy, as the same table")
     ap.add_argument("--calibration", action="store_true",
                     help="carry the tracker mounts and lags of a calibration take per device seed into each take's sync")
     args = ap.parse_args()
-    name = "fit_accuracy" + ("_calibrated" if args.calibration else "") + ("" if args.preset == "ideal" else f"_{args.preset}")
+    if args.no_trackers and args.calibration:
+        raise SystemExit("--calibration carries tracker mounts; it has no meaning with --no-trackers")
+    name = ("fit_accuracy" + ("_calibrated" if args.calibration else "") + ("" if args.preset == "ideal" else f"_{args.preset}")
+            + ("_no_trackers" if args.no_trackers else ""))  # fmt: skip
     cols = COLUMNS + ("fit_s", "exact_frames", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model
@@ -213,7 +222,8 @@ def main() -> None:
                       f"{np.sqrt(np.mean(t**2)):.1f} RMS, {t.max():.1f} worst", flush=True)  # fmt: skip
         for t in args.types:
             for s in args.seeds:
-                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s), args.preset)
+                r = one_take(t, s, args.fps, args.speed, folder, model, args.compare_exact, calibrations.get(s), args.preset,
+                             not args.no_trackers)
                 rows.append(r)
                 print(f"{t + '-' + str(s):<16}" + "".join(f"{r[c]:15.3f}" for c in cols), flush=True)
     summary = {}

@@ -57,6 +57,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_realistic", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
+    ("fit_accuracy_realistic_no_trackers", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --no-trackers",
+     "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("long_takes", "benchmarks/bench_long_takes.py --takes 60 600 --keep TAKES",
      "with TAKES a folder that keeps the scenes and takes (the 10-minute scene takes about 10 minutes to make)"),
     ("collision", "benchmarks/bench_collision.py", ""),
@@ -69,6 +71,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("probe_mcap_writer", "benchmarks/probes/probe_mcap_writer.py --repeats 9", ""),
     ("probe_skin_at", "benchmarks/probes/probe_skin_at.py", ""),
     ("probe_collision_band", "benchmarks/probes/probe_collision_band.py", ""),
+    ("probe_tracker_offsets", "benchmarks/probes/probe_tracker_offsets.py --keep TAKES",
+     "with TAKES a folder that keeps the tuning seeds' recordings"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
@@ -76,6 +80,7 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
 
 ACCURACY = (("fit_accuracy", "Ideal devices, without a calibration take"),
             ("fit_accuracy_realistic", "Realistic devices (every error drawn per take), without a calibration take"),
+            ("fit_accuracy_realistic_no_trackers", "Realistic devices, the fit without trackers (what they buy)"),
             ("fit_accuracy_calibrated", "Ideal devices, with the studio day's calibration take"))  # fmt: skip
 
 INTRO = (
@@ -92,7 +97,9 @@ ACCURACY_INTRO = (
     "every error per take within published ranges ([presets](guides/simulation-presets.md)). Contact F1 compares "
     "the fitted pair's per-vertex contacts with the ground truth's at the contact threshold. With the calibration take, each device seed's calibration "
     "take carries its tracker mounts and lags into every take of that seed; the mount columns are then the "
-    "calibration take's. Speed figures: [benchmarks](benchmarks.md)."
+    "calibration take's. The table without trackers fits the same realistic takes with the suits alone (collision term "
+    "kept): what the trackers buy. What limits the realistic figures: [presets](guides/simulation-presets.md#what-limits-the-fit-under-realistic). "
+    "Speed figures: [benchmarks](benchmarks.md)."
 )
 ACCURACY_LEGEND = (
     'Bold: a take over its goal. "free": fitted without trackers or the collision term; "off": the penetration the '

@@ -22,6 +22,24 @@ from typing import Iterator
 PACKAGE_PARENT = Path(__file__).resolve().parents[1]
 
 
+def cpu_count() -> int:
+    """The CPUs this process may run on (its affinity mask on Linux)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def available_memory() -> int | None:
+    """``MemAvailable`` of /proc/meminfo in bytes: what new processes may use without swapping (None where
+    there is no such file)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def child_env(extra: dict[str, str] | None = None) -> dict[str, str]:
     """This process's environment for a ``python -m dualhuman_builder...`` child, with the folder of
     the package imported now first on ``PYTHONPATH`` (so the child imports the same code), plus ``extra``."""

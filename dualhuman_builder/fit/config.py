@@ -90,6 +90,11 @@ class FitConfig:
     sigma_orientation_deg: float = 2.0
     #: tracker site against the tracker position (m)
     sigma_tracker_m: float = 0.004
+    #: std per axis (m) of the suit's segment origins against anny's where the take does not measure it (a
+    #: registered shape): sync's tracker offsets, measured on the suit's skeleton, are weighed with the
+    #: protocol's sites by it (:mod:`dualhuman_builder.fit.mounts`; regression-predicted joint centres miss by
+    #: 12-25 mm); 0: sync's offsets as they are (docs/decisions/0027-tracker-offsets-on-the-body.md)
+    sigma_suit_skeleton_m: float = 0.025
     #: joint acceleration, m/s^2 (scaled to a per-frame second difference by fps)
     sigma_accel_m_s2: float = 4.0
     #: sole vertex below the floor (m)

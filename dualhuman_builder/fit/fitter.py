@@ -19,7 +19,6 @@ This module keeps the fit's public names importable from one place: :class:`FitC
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -27,6 +26,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from dualhuman_builder.children import available_memory, cpu_count
 from dualhuman_builder.fit.actors import stance_mask
 from dualhuman_builder.fit.config import FitConfig, config_dict
 from dualhuman_builder.fit.inputs import ActorInput, FitError, inputs_from_fused
@@ -89,6 +89,7 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     if n_workers > 1 and not _workers_build_it(model):
         say(f"fit: {n_workers} workers asked for, but the body model is not the toolkit's float32 anny; fitting in this process")
         n_workers = 1
+    inputs, offsets = _offsets_on_body(inputs, cfg, say)
     fitter = SegmentFitter(model, inputs, fps, cfg, threads=collision_threads(n_workers))
     if n_workers > 1:
         say(f"fit: {len(segments)} segments of up to {max(1, int(cfg.segment_windows))} windows, on {n_workers} processes")
@@ -106,13 +107,29 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     fitted = parts + [s.fixed for s in seams_done if s is not None and s.fixed is not None]
     summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
                **_collision_counts(fitted), "segments": len(segments), "processes": n_workers,
-               "seams_fitted_again": seams, "worker_peak_rss_mb": None if worker_mb is None else round(worker_mb)}  # fmt: skip
+               "seams_fitted_again": seams, "worker_peak_rss_mb": None if worker_mb is None else round(worker_mb),
+               **({"tracker_offset_change_mm": offsets} if offsets else {})}  # fmt: skip
     if fitter.collide is not None:
         summary.update(max_penetration_before_mm=round(float(joined["pen_before"].max() * 1000), 3),
                        max_penetration_after_mm=round(float(joined["pen_after"].max() * 1000), 3),
                        penetrating_share_before=float(joined["share_before"].max()),
                        penetrating_share_after=float(joined["share_after"].max()))  # fmt: skip
     return FitResult(seq if seq is not None else tracks, frames, summary, valid)
+
+
+def _offsets_on_body(inputs: list[ActorInput], cfg: FitConfig, say) -> tuple[list[ActorInput], dict]:
+    """Each actor's tracker offsets on anny (:func:`~dualhuman_builder.fit.mounts.offsets_on_body`), and per
+    actor each offset's change (mm)."""
+    from dualhuman_builder.fit.mounts import offsets_on_body
+
+    out, report = [], {}
+    for inp in inputs:
+        new, change = offsets_on_body(inp, cfg)
+        out.append(new)
+        if change:
+            report[inp.name] = change
+            say(f"fit: {inp.name}'s tracker offsets on the body: {', '.join(f'{v:.0f}' for v in change)} mm from sync's")
+    return out, report
 
 
 def _frame_count(inputs: list[ActorInput]) -> int:
@@ -189,9 +206,9 @@ def fit_workers(segments: int, cfg: FitConfig, cpus: int | None = None, availabl
     if torch.device(cfg.device).type != "cpu" or segments <= 1:
         return 1
     if cpus is None:
-        cpus = _cpus()
+        cpus = cpu_count()
     if available_bytes is None:
-        available_bytes = _available_memory()
+        available_bytes = available_memory()
     by_memory = max(1, int(available_bytes // WORKER_BYTES)) if available_bytes else cpus
     return max(1, min(cpus, segments, by_memory))
 
@@ -200,24 +217,7 @@ def collision_threads(processes: int, cpus: int | None = None) -> int:
     """The collision term's query threads in each of a fit's ``processes`` (this one included): the CPUs
     shared out among them, at least 1 and at most 8. More threads than CPUs only wait on each other
     (docs/decisions/0018-segments-in-worker-processes.md)."""
-    return max(1, min(8, (_cpus() if cpus is None else int(cpus)) // max(1, int(processes))))
-
-
-def _cpus() -> int:
-    """The CPUs this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-def _available_memory() -> int | None:
-    """MemAvailable from /proc/meminfo in bytes (None where there is none)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
+    return max(1, min(8, (cpu_count() if cpus is None else int(cpus)) // max(1, int(processes))))
 
 
 def _workers_build_it(model) -> bool:

@@ -35,6 +35,10 @@ class ActorInput:
     #: (23,) trust in each MVN segment's orientation, 1 measured, 0 where no sensor measured it (the legs of an
     #: upper-body MVN recording: a fixed pose, not the actor's); None: every segment measured
     segment_weight: np.ndarray | None = None
+    #: RMS (m) of the suit's segment lengths against the anny shape calibrated to them
+    #: (:attr:`~dualhuman_builder.fit.calibrate.ShapeCalibration.rms_mm`): how far the suit's skeleton is from any
+    #: anny body, per take (:mod:`~dualhuman_builder.fit.mounts`); None for a registered shape (not measured)
+    skeleton_rms_m: float | None = None
 
     @property
     def unmeasured(self) -> tuple[str, ...]:
@@ -56,10 +60,13 @@ def segment_weights(unmeasured) -> np.ndarray | None:
     return np.array([0.0 if g in unmeasured else 1.0 for g in MVN_SEGMENTS])
 
 
-def inputs_from_fused(fused: list, shapes: dict[str, dict], unmeasured: dict | None = None) -> list[ActorInput]:
+def inputs_from_fused(fused: list, shapes: dict[str, dict], unmeasured: dict | None = None,
+                      skeleton_rms: dict[str, float] | None = None) -> list[ActorInput]:  # fmt: skip
     """:class:`ActorInput` per :class:`~dualhuman_builder.fit.fuse.FusedActor`; ``shapes``: actor name ->
     anny phenotype; ``unmeasured``: actor name -> the MVN segments no sensor measured
-    (:func:`segment_weights`; the sync report's ``imported`` says which for an imported take)."""
+    (:func:`segment_weights`; the sync report's ``imported`` says which for an imported take);
+    ``skeleton_rms``: actor name -> :attr:`ActorInput.skeleton_rms_m` (m), for the actors whose shape was
+    calibrated from the suit."""
     out = []
     lf, rf = MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")
     for f in fused:
@@ -69,5 +76,6 @@ def inputs_from_fused(fused: list, shapes: dict[str, dict], unmeasured: dict | N
                               pelvis=np.asarray(sk.positions[:, 0]), valid=valid, trk_pos=f.trk_pos, trk_valid=f.trk_valid,
                               trk_segment=f.trk_segment, trk_offset=f.trk_offset,
                               ankles=np.asarray(sk.positions[:, [lf, rf]]),
-                              segment_weight=segment_weights((unmeasured or {}).get(sk.actor))))  # fmt: skip
+                              segment_weight=segment_weights((unmeasured or {}).get(sk.actor)),
+                              skeleton_rms_m=(skeleton_rms or {}).get(sk.actor)))  # fmt: skip
     return out

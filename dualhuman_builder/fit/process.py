@@ -48,6 +48,12 @@ def shape_dict(cal) -> dict:
     return cal if isinstance(cal, dict) else cal.shape
 
 
+def skeleton_rms(shapes: dict) -> dict[str, float]:
+    """Actor name -> the RMS (m) of the suit's segment lengths against the calibrated shape, for the
+    actors of ``shapes`` (:func:`calibrate_shapes`) whose shape was calibrated (a registered one has none)."""
+    return {k: v.rms_mm / 1000 for k, v in shapes.items() if not isinstance(v, dict)}
+
+
 def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool = True, config: FitConfig = FitConfig(),
                  known_shapes: dict | None = None, statures: dict | None = None, genders: dict | None = None,
                  model=None, progress: Callable[[str], None] | None = None, workers: int | None = None,
@@ -69,5 +75,6 @@ def process_take(take: str | Path | dict, fps: float = 30.0, use_trackers: bool 
     fused = [fuse_actor(a, sync.times_s, fps) for a in sync.actors]
     shapes = calibrate_shapes(model, fused, known_shapes, statures, genders)
     say("shapes: " + ", ".join(f"{k} {getattr(v, 'stature_m', 0):.3f} m" for k, v in shapes.items()))
-    fit = fit_actors(model, inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}), fps, config, say, workers)
+    inputs = inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}, skeleton_rms=skeleton_rms(shapes))
+    fit = fit_actors(model, inputs, fps, config, say, workers)
     return TakeFit(sync, fused, shapes, fit)

@@ -34,7 +34,7 @@ from dualhuman_builder.sync.stage import load_sync, run_sync
 from dualhuman_builder.workspace.runner import Stage
 
 #: Bumped whenever the same sync would fuse or fit to other numbers, so workspaces fit again.
-FIT_VERSION = "4"
+FIT_VERSION = "5"
 BODIES = "bodies.npz"
 FUSE = Stage("fuse", per="take", artifacts=("{actor}.skeleton.npz", "{actor}.trackers.npz", "fuse.json"),
              reads=("sync",), command="dualhuman fuse {ws} --take {take}")  # fmt: skip
@@ -90,7 +90,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
     (:func:`~dualhuman_builder.fit.fitter.fit_actors`; the answer does not depend on it)."""
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.fit.fitter import fit_actors, inputs_from_fused
-    from dualhuman_builder.fit.process import calibrate_shapes, shape_dict
+    from dualhuman_builder.fit.process import calibrate_shapes, shape_dict, skeleton_rms
     from dualhuman_builder.fit.report import write_fit_report
 
     run_fuse(ws, take, log=log, **sync_kw)
@@ -109,7 +109,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         shapes = calibrate_shapes(model, fused, None, statures, genders)
         log("shapes: " + ", ".join(f"{k} {v.stature_m:.3f} m (segment lengths within {v.rms_mm:.1f} mm RMS)" for k, v in shapes.items()))
         unmeasured = {a: list(v.get("unmeasured_segments", ())) for a, v in (sync.report.get("imported") or {}).items()}
-        inputs = inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}, unmeasured)
+        inputs = inputs_from_fused(fused, {k: shape_dict(v) for k, v in shapes.items()}, unmeasured, skeleton_rms(shapes))
         res = fit_actors(model, inputs, sync.fps, config, log, workers)
         seq = res.sequence
         if len(fused) == 2:
