@@ -4,7 +4,7 @@
 # in a row does no work (it ends with "setup: nothing to do").
 #
 #   1. Debian packages: libllvm19 (Mitsuba's llvm_ad_rgb; the system LLVM 15 aborts), libusb-1.0-0
-#      (pyusb's backend for VIVE USB access).
+#      (pyusb's backend for VIVE USB access); with --tests also chromium (the review page's browser test).
 #   2. A virtual environment in .venv (override with DUALHUMAN_VENV).
 #   3. A CPU PyTorch when none is present (torch==2.13.0 lies on this kind of machine's disk).
 #   4. This package, editable, with its test extras (re-run when pyproject.toml changes).
@@ -17,6 +17,12 @@ VENV=${DUALHUMAN_VENV:-.venv}
 did=()
 
 apt_pkgs=(libllvm19 libusb-1.0-0)
+for arg in "$@"; do
+  case "$arg" in
+    --tests) apt_pkgs+=(chromium) ;;
+    *) echo "setup: unknown option $arg (the one option is --tests)" >&2; exit 2 ;;
+  esac
+done
 missing=()
 for p in "${apt_pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

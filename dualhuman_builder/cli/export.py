@@ -141,24 +141,41 @@ def export():
 @click.option("--subject-disjoint", is_flag=True, help="No performer in both splits.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the split.")
 @click.option("--strict", is_flag=True, help="Fail when a take lacks a stage instead of exporting what is complete.")
+@click.option("--include-flagged", is_flag=True,
+              help="Export takes the quality gates flagged (`dualhuman gates`) too; by default they are left out.")
+@click.option("--synth-split", is_flag=True,
+              help="Keep the train/test split of the workspace's synthetic-dataset plan (WS/synth.json: its held-out "
+                   "actors and types); the other takes' split is drawn as usual.")
 def export_build(workspace: Path, out: Path, takes: tuple[str, ...], split_ratio: float, subject_disjoint: bool, seed: int,
-                 strict: bool):  # fmt: skip
+                 strict: bool, include_flagged: bool, synth_split: bool):  # fmt: skip
     """Export every fitted take of WORKSPACE as a dataset folder OUT.
 
     Per sequence: both actors' anny parameters and joints, the 269-dim motion features, contacts
     (bit-packed labels, distances, region events), labels and texts, cameras and renders; at the
     top a manifest (versions, units, axes, SHA-256 of every file), a schema of every array, seeded
     train/test splits, feature mean/std and a dataset card (README.md). Re-running completes a
-    partial export and rewrites only what changed.
+    partial export and rewrites only what changed. Takes the quality gates flagged (`dualhuman
+    gates WS`) are left out, each named with its flags, unless --include-flagged; the manifest's
+    "quality" lists them.
 
     Example:  dualhuman export WS WS/export
     """
     from dualhuman_builder.export.collect import run_export
     from dualhuman_builder.workspace import Workspace
 
+    splits = None
+    if synth_split:
+        from dualhuman_builder.sim.synth import load_plan, plan_splits
+
+        plan = load_plan(workspace)
+        if plan is None:
+            raise click.UsageError(f"{workspace} has no synthetic-dataset plan (synth.json): --synth-split needs one "
+                                   "made by `dualhuman synth`")  # fmt: skip
+        splits = plan_splits(plan) or None
     with Workspace.open(workspace, readonly=True) as ws:
         m = run_export(ws, out, list(takes) or None, strict=strict, split_ratio=split_ratio,
-                       subject_disjoint=subject_disjoint, seed=seed, log=console.print)  # fmt: skip
+                       subject_disjoint=subject_disjoint, seed=seed, log=console.print,
+                       include_flagged=include_flagged, splits=splits)  # fmt: skip
     console.print(f"exported {len(m['sequences'])} sequence(s) to {out}; check it with `dualhuman export verify {out}`",
                   highlight=False)  # fmt: skip
 

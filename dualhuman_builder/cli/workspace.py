@@ -40,7 +40,8 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
     since: run it again), failed, running, interrupted (its process is gone), or not run yet.
     scene, devices and capture run per sequence, the other stages per take. Runs that are not
     done are listed below with the reason. A re-run that failed keeps the previous result and its
-    state (--long shows the failure). Control characters in names are shown escaped (\\x1b).
+    state (--long shows the failure). Then each take the quality gates flagged (`dualhuman gates`),
+    with its flags. Control characters in names are shown escaped (\\x1b).
 
     Read-only: works on a workspace you cannot write to. Exit status 1 when --verify finds a problem.
 
@@ -55,13 +56,15 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
     from dualhuman_builder.cli.console import is_utf8, status_grid, status_long
     from dualhuman_builder.pipeline import STAGES
     from dualhuman_builder.workspace import Workspace
+    from dualhuman_builder.workspace.catalog import take_flags
     from dualhuman_builder.workspace.workspace import printable
 
     with Workspace.open(workspace, readonly=True) as ws:
         rows = ws.status_rows()
         problems = ws.verify() if verify else []
-        if as_json:
-            click.echo(json.dumps({"rows": rows, "problems": problems}, indent=2))  # JSON escapes control characters
+        quality = take_flags(ws.conn)  # the quality gates' verdicts (`dualhuman gates`)
+        if as_json:  # JSON escapes control characters
+            click.echo(json.dumps({"rows": rows, "problems": problems, "quality": quality}, indent=2))
         else:
             title = f"workspace {ws.root}"
             if long_:
@@ -70,6 +73,16 @@ def status(workspace: Path, long_: bool, verify: bool, as_json: bool):
                 lines = status_grid(rows, STAGES, title, width=console.width, unicode=is_utf8(console))
             for line in lines:
                 console.print(line, soft_wrap=True, highlight=False)
+            for take, q in quality.items():  # the quality gates' flags (`dualhuman gates`)
+                if not q["flags"]:
+                    continue
+                late = f" (from before {', '.join(q['outdated'])} ran again: `dualhuman gates {ws.root} --take {take}`)" \
+                    if q["outdated"] else ""  # fmt: skip
+                console.print(f"[red]flagged[/] {escape(printable(take))}: {len(q['flags'])} flag(s){escape(printable(late))}",
+                              highlight=False, soft_wrap=True)  # fmt: skip
+                for f in q["flags"]:
+                    console.print(f"  {f['gate']} ({f['stage']}): {escape(printable(f['message']))}", highlight=False,
+                                  soft_wrap=True)  # fmt: skip
             if verify:
                 for p in problems:
                     console.print(f"[red]problem:[/] {escape(printable(p))}", highlight=False, soft_wrap=True)

@@ -131,6 +131,15 @@ def dataset_card(manifest: Mapping[str, Any]) -> str:
         _layout_section(),
         "",
     ]
+    if manifest.get("source") == "ground-truth":
+        lines += ["**Ground truth, not fitted data**: every sequence is a generated scene (`dualhuman synth --path "
+                  "ground-truth`), with no simulated devices and no fit; each `sequence.json` says "
+                  '`meta.source = "ground-truth"`.', ""]  # fmt: skip
+    quality = manifest.get("quality") or {}
+    if quality.get("left_out"):
+        lines += ["## Left out by the quality gates", ""]
+        lines += [f"- `{k}`: {'; '.join(f['gate'] + ' (' + f['message'] + ')' for f in v)}" for k, v in quality["left_out"].items()]
+        lines += [""]
     if manifest.get("skipped"):
         lines += ["## Left out", ""] + [f"- `{k}`: {v}" for k, v in manifest["skipped"].items()] + [""]
     if manifest.get("incomplete"):

@@ -5,11 +5,14 @@ the ``contacts`` stage's labels when that stage is complete, the ``render`` stag
 is, the take's labels, texts and roles (its sequences' and annotations', checked against the
 workspace's vocabulary), and the take's actors as subjects. Takes without a fit
 are listed as left out (an error with ``strict=True``); what each exported sequence lacks is listed
-by :func:`~dualhuman_builder.export.writer.export_dataset` under ``incomplete``.
+by :func:`~dualhuman_builder.export.writer.export_dataset` under ``incomplete``. Takes the quality
+gates flagged (their verdicts in the catalog: :func:`~dualhuman_builder.workspace.catalog.take_flags`)
+are left out unless ``include_flagged``; the manifest's ``quality`` says which, and why.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Callable
 
@@ -66,10 +69,51 @@ def workspace_items(ws, takes: list[str] | None = None, vocabulary=None) -> tupl
     return items, left_out
 
 
+def quality_verdicts(ws, items: list, include_flagged: bool, log: Callable[[str], None]) -> tuple[list, dict]:
+    """``(items to export, the manifest's quality section)``: ``items`` less those whose take the
+    quality gates flagged, unless ``include_flagged`` (each one logged with its flags). The section:
+    ``left_out`` and ``included`` (take -> its flags: gate, stage, subject, value, threshold,
+    message), ``unchecked`` (takes never checked) and ``outdated`` (take -> stages that ran again
+    since the check)."""
+    from dualhuman_builder.workspace.catalog import take_flags
+
+    verdicts = take_flags(ws.conn)
+    keep, section = [], {"left_out": {}, "included": {}, "unchecked": [], "outdated": {}}
+    for item in items:
+        take = (item.meta or {}).get("take", item.seq_id)
+        v = verdicts.get(take)
+        if v is None:
+            section["unchecked"].append(take)
+            keep.append(item)
+            continue
+        if v["outdated"]:
+            section["outdated"][take] = v["outdated"]
+        if not v["flags"]:
+            keep.append(item)
+            continue
+        flags = [{k: f[k] for k in ("gate", "stage", "subject", "value", "threshold", "message")} for f in v["flags"]]
+        why = "; ".join(f"{f['gate']} ({f['stage']}): {f['message']}" for f in flags)
+        if include_flagged:
+            section["included"][take] = flags
+            keep.append(item)
+            log(f"WARNING: take {take!r} exported although flagged by the quality gates (--include-flagged): {why}")
+        else:
+            section["left_out"][take] = flags
+            log(f"take {take!r} left out: flagged by the quality gates: {why} (export it with --include-flagged)")
+    if section["unchecked"]:
+        log(f"note: {len(section['unchecked'])} take(s) never checked by the quality gates: "
+            f"{section['unchecked'][:10]} (`dualhuman gates {ws.root}` checks them)")  # fmt: skip
+    return keep, section
+
+
 def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: bool = False, split_ratio: float = 0.75,
-               subject_disjoint: bool = False, seed: int = 0, log: Callable[[str], None] = print) -> dict:  # fmt: skip
+               subject_disjoint: bool = False, seed: int = 0, log: Callable[[str], None] = print,
+               include_flagged: bool = False, splits: Mapping[str, str] | None = None) -> dict:  # fmt: skip
     """Export the workspace's fitted takes to ``out_dir``; returns the manifest (plus
-    ``left_out``: takes without a fit)."""
+    ``left_out``: takes without a fit). Takes the quality gates flagged are left out unless
+    ``include_flagged``; the manifest's ``quality`` (:func:`quality_verdicts`) says which and why.
+    ``splits``: take -> ``"train"``/``"test"`` given from elsewhere (a synthetic plan's hold-outs), kept for the
+    takes exported; the others' split is drawn (:func:`~dualhuman_builder.export.writer.export_dataset`)."""
     from dualhuman_builder.export.writer import export_dataset
 
     vocabulary = _vocabulary(ws)
@@ -93,7 +137,13 @@ def run_export(ws, out_dir: str | Path, takes: list[str] | None = None, strict: 
     if not items:
         raise WorkspaceError("no take has a complete fit: nothing to export", path=ws.root,
                              fix="run `dualhuman fit WS --take T` first")  # fmt: skip
+    items, quality = quality_verdicts(ws, items, include_flagged, log)
+    if not items:
+        raise WorkspaceError(f"every fitted take is flagged by the quality gates: {sorted(quality['left_out'])}",
+                             path=ws.root, fix=f"look at them (`dualhuman status {ws.root}`, `dualhuman review {ws.root}`), "
+                                               "or export them anyway with --include-flagged")  # fmt: skip
     manifest = export_dataset(items, out_dir, split_ratio=split_ratio, subject_disjoint=subject_disjoint, seed=seed,
-                              strict=strict, progress=log, vocabulary=vocabulary)  # fmt: skip
+                              strict=strict, progress=log, vocabulary=vocabulary, extra={"quality": quality},
+                              splits={k: v for k, v in (splits or {}).items() if k in {i.seq_id for i in items}} or None)  # fmt: skip
     manifest["left_out"] = left_out
     return manifest

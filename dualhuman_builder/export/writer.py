@@ -194,6 +194,7 @@ def export_dataset(
     expect: Iterable[str] = STAGES,
     vocabulary: Vocabulary | None = None,
     splits: Mapping[str, str] | None = None,
+    extra: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Export ``items`` into the folder layout (:mod:`~dualhuman_builder.export.card`) under ``out_dir``;
     returns the manifest.
@@ -207,7 +208,8 @@ def export_dataset(
     :func:`~dualhuman_builder.labels.load_vocabulary`). ``splits``: seq_id -> ``"train"`` or ``"test"``, a
     split given from elsewhere (an imported dataset's own lists); those sequences keep it, the others
     are drawn as above among themselves (``subject_disjoint`` holds among the drawn ones only), and the
-    manifest's ``split.given`` counts them. Re-running completes a partial export and rewrites only what
+    manifest's ``split.given`` counts them. ``extra``: further top-level manifest entries (JSON values; e.g. the
+    workspace export's ``quality``), written with the rest. Re-running completes a partial export and rewrites only what
     changed. Errors (ValueError): duplicate or unsafe ``seq_id``, text that is not UTF-8, a label outside
     the vocabulary, malformed contacts, a missing ``render_dir``, mixed fps or body models, an
     ``out_dir`` that is a non-empty folder but no export, ``splits`` naming an unknown sequence or split,
@@ -370,6 +372,7 @@ def export_dataset(
         "incomplete": incomplete,
         "skipped": dict(sorted(skipped.items())),
         "files": {},
+        **dict(extra or {}),
     }
     put("README.md", dataset_card(manifest).encode("utf-8"))
     manifest["files"] = dict(sorted(files.items()))

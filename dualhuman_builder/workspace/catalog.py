@@ -22,6 +22,12 @@ Tables (format version :data:`CATALOG_VERSION`):
   latest attempt and its error text; ``reads_json``, the stages this run read (``STAGE`` of the same
   take, ``TAKE/STAGE`` of another), whose changes make it stale. See
   :mod:`dualhuman_builder.workspace.runner`.
+* ``quality_checks`` and ``quality_flags`` (version 4) — the quality gates' verdict on a take
+  (:mod:`dualhuman_builder.quality.gates`): one ``quality_checks`` row per take checked (when, the
+  gates evaluated and skipped, the ``ended_at`` of each stage run they read) and one
+  ``quality_flags`` row per failed gate (gate, stage, subject such as a tracker or an actor, value,
+  threshold, message, the ``ended_at`` of the stage run it read); checking a take again replaces
+  both (:func:`replace_flags`, :func:`take_flags`).
 
 Opening checks the file is a SQLite database, passes ``PRAGMA quick_check``, and was written by a
 format version this code reads, before anything is written. A catalog of an older version is
@@ -45,7 +51,7 @@ from dualhuman_builder import __version__
 from dualhuman_builder.errors import FormatVersionError, WorkspaceError
 
 CATALOG_NAME = "catalog.sqlite"
-CATALOG_VERSION = 3
+CATALOG_VERSION = 4
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
 SCHEMA = """
@@ -177,7 +183,68 @@ DROP TABLE stage_runs;
 ALTER TABLE stage_runs_v3 RENAME TO stage_runs;
 CREATE UNIQUE INDEX stage_runs_key ON stage_runs (take_id, IFNULL(sequence_id, 0), stage);
 """,
+    # the quality gates' flags per take (dualhuman_builder.quality.gates)
+    3: """
+CREATE TABLE quality_checks (
+    take_id INTEGER PRIMARY KEY REFERENCES takes(id) ON DELETE CASCADE,
+    checked_at TEXT NOT NULL,
+    evaluated_json TEXT NOT NULL DEFAULT '[]',
+    skipped_json TEXT NOT NULL DEFAULT '{}',
+    stages_json TEXT NOT NULL DEFAULT '{}'
+);
+CREATE TABLE quality_flags (
+    id INTEGER PRIMARY KEY,
+    take_id INTEGER NOT NULL REFERENCES takes(id) ON DELETE CASCADE,
+    gate TEXT NOT NULL,
+    stage TEXT NOT NULL,
+    subject TEXT NOT NULL DEFAULT '',
+    value REAL,
+    threshold REAL,
+    message TEXT NOT NULL,
+    stage_ended_at TEXT
+);
+CREATE INDEX quality_flags_take ON quality_flags (take_id);
+""",
 }
+
+
+def replace_flags(conn: sqlite3.Connection, take_id: int, flags: list[dict], check: dict) -> None:
+    """Store the quality gates' verdict on take ``take_id`` in one transaction, replacing the one
+    before: ``flags`` (dicts with ``gate``, ``stage``, ``subject``, ``value``, ``threshold``,
+    ``message``, ``stage_ended_at``) and ``check`` (``evaluated``: gate names, ``skipped``: gate ->
+    why, ``stages``: stage -> ``ended_at`` of the run read)."""
+    with _transaction(conn):
+        conn.execute("DELETE FROM quality_flags WHERE take_id = ?", (take_id,))
+        conn.execute("INSERT OR REPLACE INTO quality_checks (take_id, checked_at, evaluated_json, skipped_json, stages_json) "
+                     "VALUES (?, ?, ?, ?, ?)", (take_id, now_iso(), json.dumps(list(check.get("evaluated", ()))),
+                     json.dumps(dict(check.get("skipped", {}))), json.dumps(dict(check.get("stages", {})))))  # fmt: skip
+        conn.executemany("INSERT INTO quality_flags (take_id, gate, stage, subject, value, threshold, message, stage_ended_at) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                         [(take_id, f["gate"], f["stage"], f.get("subject") or "", f.get("value"), f.get("threshold"),
+                           f["message"], f.get("stage_ended_at")) for f in flags])  # fmt: skip
+
+
+def take_flags(conn: sqlite3.Connection, take_id: int | None = None) -> dict[str, dict]:
+    """The stored quality verdicts by take name (of ``take_id``, or every take checked):
+    ``{"checked_at", "evaluated", "skipped", "stages", "flags": [dict, ...], "outdated": [stage, ...]}``;
+    ``outdated`` lists the stages whose run the gates read has been replaced or is no longer done
+    since (check the take again). A catalog not yet migrated (opened read-only) has none."""
+    if not conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'quality_checks'").fetchone():
+        return {}
+    where, args = ("WHERE c.take_id = ?", (take_id,)) if take_id is not None else ("", ())
+    out: dict[str, dict] = {}
+    for r in conn.execute(f"SELECT c.*, t.name AS take FROM quality_checks c JOIN takes t ON t.id = c.take_id {where} "
+                          "ORDER BY t.name", args).fetchall():  # fmt: skip
+        stages = json.loads(r["stages_json"])
+        current = {s["stage"]: s["ended_at"] for s in conn.execute(
+            "SELECT stage, ended_at FROM stage_runs WHERE take_id = ? AND sequence_id IS NULL AND status = 'done'",
+            (r["take_id"],))}  # fmt: skip
+        flags = [{k: f[k] for k in ("gate", "stage", "subject", "value", "threshold", "message", "stage_ended_at")}
+                 for f in conn.execute("SELECT * FROM quality_flags WHERE take_id = ? ORDER BY id", (r["take_id"],))]  # fmt: skip
+        out[r["take"]] = {"checked_at": r["checked_at"], "evaluated": json.loads(r["evaluated_json"]),
+                          "skipped": json.loads(r["skipped_json"]), "stages": stages, "flags": flags,
+                          "outdated": sorted(s for s, t in stages.items() if current.get(s) != t)}  # fmt: skip
+    return out
 
 
 def now_iso() -> str:

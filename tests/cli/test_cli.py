@@ -78,7 +78,7 @@ def test_workspace_commands(tmp_path):
     assert r.exit_code == 0 and "rig 'studio' stored" in r.output
     assert "studio" in run("rig", "list", ws).output
     r = run("status", ws, "--json")
-    assert r.exit_code == 0 and json.loads(r.output) == {"rows": [], "problems": []}
+    assert r.exit_code == 0 and json.loads(r.output) == {"rows": [], "problems": [], "quality": {}}
 
 
 def test_errors_are_specific_and_change_nothing(tmp_path):
@@ -189,7 +189,7 @@ def test_status_long_json_and_narrow_names(tmp_path):
     assert "\n      RuntimeError: renderer ran out of memory\n" in r.output and "in _boom" in r.output
     # --json keeps its shape: every run's state, hash, end time, error and artifact count
     doc = json.loads(run("status", ws, "--json").output)
-    assert set(doc) == {"rows", "problems"} and [(x["take"], x["sequence"]) for x in doc["rows"]] == [
+    assert set(doc) == {"rows", "problems", "quality"} and [(x["take"], x["sequence"]) for x in doc["rows"]] == [
         ("CALIB", None), ("CALIB", "calibration"), ("DEMO", None), ("DEMO", "handshake")]
     render = doc["rows"][2]["stages"]["render"]
     assert set(render) == {"state", "hash", "ended_at", "error", "artifacts"} and render["state"] == "failed"

@@ -95,7 +95,7 @@ def test_a_version_1_catalog_is_migrated_when_opened_for_writing(tmp_path):
     path = tmp_path / "old"
     Workspace.init(path).close()
     conn = sqlite3.connect(path / "catalog.sqlite")  # make it what the previous release wrote
-    conn.executescript("DROP TABLE annotations; UPDATE meta SET value = '1' WHERE key = 'format_version';")
+    conn.executescript("DROP TABLE annotations; DROP TABLE quality_flags; DROP TABLE quality_checks; UPDATE meta SET value = '1' WHERE key = 'format_version';")
     conn.close()
     with Workspace.open(path, readonly=True) as w:
         assert w.annotations() == []  # read-only: left as it is

@@ -1,0 +1,110 @@
+"""`dualhuman synth`: a varied synthetic dataset generated into a workspace."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from dualhuman_builder.cli.app import console, main
+
+#: The interaction types (``dualhuman_builder.sim.scenes.SCENE_TYPES``, spelled out so that --help imports nothing
+#: heavy; tests/sim/test_synth.py checks they agree).
+SYNTH_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn")
+
+
+def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
+    if value is None:
+        return None
+    return tuple(s.strip() for s in value.split(",") if s.strip())
+
+
+@main.command()
+@click.argument("workspace", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--takes", type=int, required=True, help="How many takes to plan and make.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seeds every draw: the same seed gives the same plan.")
+@click.option("--types", default=None, callback=_names, metavar="A,B",
+              help=f"Interaction types to draw from (default: all of {', '.join(SYNTH_TYPES)}).")
+@click.option("--preset", type=click.Choice(["ideal", "realistic", "mixed"]), default="ideal", show_default=True,
+              help="Device errors of each take: 'mixed' gives half the takes 'realistic' and the rest 'ideal' "
+                   "(docs/guides/simulation-presets.md).")
+@click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
+@click.option("--long-share", type=float, default=0.1, show_default=True,
+              help="Share of the takes that are long 'session' takes chaining interactions.")
+@click.option("--long-duration", type=float, default=60.0, show_default=True, help="Seconds of each long take.")
+@click.option("--actors", "pool", type=int, default=None,
+              help="Size of the actor pool (default: half the takes, 4 to 32).")
+@click.option("--hold-out-actors", type=int, default=0, show_default=True,
+              help="Put every take of this many drawn actors in the test split (the rest in train).")
+@click.option("--hold-out-types", default=None, callback=_names, metavar="A,B",
+              help="Put every take of these types (and every long take) in the test split.")
+@click.option("--path", "way", type=click.Choice(["full", "ground-truth"]), default="full", show_default=True,
+              help="full: scene, devices and capture of each take (then `dualhuman run WS`); ground-truth: scene "
+                   "straight to the export (--export), no devices and no fit.")
+@click.option("--export", "export_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Export folder: required with --path ground-truth; with --path full, the takes fitted so far "
+                   "are exported with the plan's split.")
+@click.option("--include-flagged", is_flag=True,
+              help="With --path full --export: export takes the quality gates flagged too.")
+@click.option("--speed", type=float, default=1.0, show_default=True,
+              help="The simulated devices play this many times faster than real time while recorded (full path).")
+@click.option("--plan-only", is_flag=True, help="Print the plan's summary and write WS/synth.json; make nothing.")
+def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float, long_share: float,
+          long_duration: float, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
+          export_dir: Path | None, include_flagged: bool, speed: float, plan_only: bool):  # fmt: skip
+    """Generate a varied synthetic dataset of TAKES simulated takes into WORKSPACE (created if missing).
+
+    The plan (WORKSPACE/synth.json) is drawn from the seed: an actor pool over statures, genders
+    and build, each take's pair, interaction type, tempo, approach distance, device errors and
+    split, and a share of long takes. Run again with the same arguments, it resumes (takes made
+    before are skipped); with other arguments, it refuses. One line per take; exits 1 when a
+    take's scene met no quality contract.
+
+    \b
+    Examples:
+      dualhuman synth WS --takes 24 --seed 1 --hold-out-actors 2
+      dualhuman run WS
+      dualhuman synth WS --takes 24 --seed 1 --hold-out-actors 2 --export OUT
+      dualhuman synth GT --takes 200 --path ground-truth --export OUT
+    """
+    from rich.markup import escape
+
+    from dualhuman_builder.sim.synth import SynthOptions, describe_plan, make_synthetic, plan_synthetic
+
+    options = SynthOptions(takes=takes, seed=seed, types=types or SYNTH_TYPES, preset=preset, fps=fps,
+                           long_share=long_share, long_duration=long_duration, actors=pool,
+                           hold_out_actors=hold_out_actors, hold_out_types=hold_out_types or (), speed=speed)  # fmt: skip
+    plan = plan_synthetic(options)
+    for line in describe_plan(plan):
+        console.print(escape(line), highlight=False)
+    if plan_only:
+        from dualhuman_builder.sim.synth import record_plan
+        from dualhuman_builder.workspace import Workspace
+
+        with Workspace.init(workspace) as ws:
+            record_plan(ws.root, plan)
+        console.print(f"plan written to {workspace / 'synth.json'}", highlight=False)
+        return
+
+    def say(line: str) -> None:
+        console.print(escape(line), highlight=False, soft_wrap=True)
+
+    if console.is_terminal:
+        with console.status("planning...") as spinner:
+            result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged,
+                                    log=lambda m: spinner.update(escape(str(m)[:100])), progress=say)  # fmt: skip
+    else:
+        result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged,
+                                log=lambda m: None, progress=say)  # fmt: skip
+    console.print(f"{len(result.made)} made, {len(result.skipped)} made before, {len(result.failed)} failed "
+                  f"in {result.seconds:.0f} s", highlight=False)  # fmt: skip
+    if result.manifest is not None:
+        c = result.manifest["counts"]
+        console.print(f"export {export_dir}: {c['sequences']} sequences ({c['train']} train, {c['test']} test), "
+                      f"source {result.manifest.get('source')}", highlight=False)  # fmt: skip
+    elif way == "full":
+        console.print(f"next: `dualhuman run {workspace}`", highlight=False)
+    if result.failed:
+        sys.exit(1)
