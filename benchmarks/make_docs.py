@@ -63,6 +63,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with TAKES a folder that keeps the scenes and takes (the 10-minute scene takes about 10 minutes to make)"),
     ("run", "benchmarks/bench_run.py --takes 24",
      "on an otherwise idle machine (24 takes through the fit with each executor: about an hour on 2 cores)"),
+    ("long_takes_realistic", "benchmarks/bench_long_takes.py --takes 60 600 --preset realistic --keep TAKES",
+     "with TAKES a folder that keeps the scenes and takes (the 10-minute scene takes about 10 minutes to make)"),
     ("collision", "benchmarks/bench_collision.py", ""),
     ("contacts", "benchmarks/bench_contacts.py", "with the `bench` extra installed (`rtree`, for trimesh)"),
     ("render", "benchmarks/bench_render.py", ""),
