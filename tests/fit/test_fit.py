@@ -227,9 +227,14 @@ def test_full_path_on_a_simulated_take(recorded, model):
     assert ev["max_penetration_mm"] < 5.0, tf.fit.summary
     assert ev["max_penetration_mm"] <= max(ev["max_penetration_before_mm"], 2.0), tf.fit.summary
     assert ev["penetrating_share"] <= max(ev["penetrating_share_before"], 0.0005)
-    # the suit gives no fingers: the collision passes opened the clasped hands, within the openings' range
     opening = np.stack([tf.fit.frames[f"hand opening (0 relaxed, 1 flat)/{a}"] for a in ("sim-a", "sim-b")])
-    assert opening.shape == (2, ev["frames"]) and opening.max() > 0.05 and opening.max() <= 1.01, opening.max(1)
+    assert opening.shape == (2, ev["frames"]) and opening.max() <= 1.01, opening.max(1)
+    # the suit gives no fingers: where the skeleton pass leaves the clasped hands overlapping (it does with sync's
+    # own tracker offsets on this take), the collision passes open them, within the openings' range
+    raw = process_take(take, fps=15.0, config=FitConfig(sigma_suit_skeleton_m=0.0), model=model)
+    assert raw.fit.summary["max_penetration_before_mm"] > 2.5, raw.fit.summary
+    opening = np.stack([raw.fit.frames[f"hand opening (0 relaxed, 1 flat)/{a}"] for a in ("sim-a", "sim-b")])
+    assert 0.05 < opening.max() <= 1.01, opening.max(1)
     seq = tf.fit.sequence
     assert [t.actor for t in seq.actors] == ["sim-a", "sim-b"] and seq.num_frames == ev["frames"]
     assert np.isfinite(np.asarray(seq.actors[0].pose)).all()
