@@ -64,6 +64,10 @@ DISTANCE_BAND = 0.05
 #: Most draws of a scene's variation :func:`make_scene` tries before it gives up on the quality
 #: contract (each a full generation; a draw breaks it rarely, so the chance that all of them do is small).
 MAX_DRAWS = 8
+#: torch CPU threads while a scene is generated: its body-model calls are many small batches, which
+#: run several times faster on one thread than split over a loaded machine's cores (and the same
+#: answer on any machine); a process generating scenes in parallel runs one per core instead.
+TORCH_THREADS = 1
 SCENE_VERSION = 1
 #: Version of the generator: bumped whenever the same parameters generate different scenes, so
 #: that cached ``scene`` stages recompute (the changes are in CHANGELOG.md).
@@ -229,7 +233,19 @@ def make_scene(params: SceneParams, model=None, log: Callable[[str], None] | Non
     The variation (the two adults, unless ``params.shapes`` gives them, and each choreography's
     random spacing and timing) is drawn from ``seed``; a draw whose scene breaks the contract is
     replaced by the next, from an rng derived from ``(seed, draw)``, up to ``max_draws`` draws.
-    ``stats["draws"]`` records how many it took (1: the seed's own draw)."""
+    ``stats["draws"]`` records how many it took (1: the seed's own draw). Runs on
+    :data:`TORCH_THREADS` torch threads (restored after)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(TORCH_THREADS)
+    try:
+        return _make_scene(params, model, log, max_draws)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _make_scene(params: SceneParams, model, log: Callable[[str], None] | None, max_draws: int) -> Scene:
     from dualhuman_builder.body.model import get_body_model
 
     if params.type == SESSION_TYPE:
@@ -338,10 +354,10 @@ def ground_truth_distances(seq, frames=None, previous=None) -> tuple[np.ndarray,
     generalised winding number (:func:`~dualhuman_builder.sim.quality.sign_by_winding`), which
     stays right where a posed body crosses itself, and which also reports vertices deeper inside
     than the band."""
-    from dualhuman_builder.geometry.distance import get_pair_distance
+    from dualhuman_builder.sim.pairquery import get_fast_pair
     from dualhuman_builder.sim.quality import sign_by_winding
 
-    pair = get_pair_distance()
+    pair = get_fast_pair()
     va, vb = seq.actors[0].vertices(), seq.actors[1].vertices()
     if previous is None:
         da, db = np.empty(va.shape[:2], np.float16), np.empty(vb.shape[:2], np.float16)
@@ -381,7 +397,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     import torch
     from scipy.ndimage import gaussian_filter1d
 
-    from dualhuman_builder.geometry.distance import get_pair_distance
+    from dualhuman_builder.sim.pairquery import get_fast_pair
 
     if not chor.contacts:
         return poses, 0.0, ""
@@ -398,10 +414,11 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             out = model(roma.rotmat_to_rotvec(torch.tensor(local[frames])).float(), torch.tensor(p.sk.shape),
                         torch.tensor(transl[frames], dtype=torch.float32))  # fmt: skip
         verts.append(out.vertices.numpy())
-    pair = get_pair_distance()
+    fast = get_fast_pair()
     hands = np.concatenate([_hand_vertices(model, s) for s in SIDES])  # only palms are corrected
-    dists, near_hand = [], []
-    for k in range(len(frames)):
+    palms = [(n, spec) for n, spec in enumerate(chor.contacts) if spec.side is not None]
+    dists, partner_near = [], {}
+    for k, f in enumerate(frames):
         # each body's hands, and each body's vertices near the other's hands (a chest pressing
         # into a palm is as much a penetration as the palm pressing into the chest)
         q, near = [], []
@@ -410,11 +427,25 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             lo, hi = box.min(0) - DISTANCE_BAND, box.max(0) + DISTANCE_BAND
             close = np.flatnonzero(np.all((verts[i][k] >= lo) & (verts[i][k] <= hi), axis=1))
             near.append(close)
-            q.append(np.union1d(hands, close))
-        dists.append(pair(verts[0][k], verts[1][k], DISTANCE_BAND, q[0], q[1]))
-        near_hand.append(near)
+            q.append(np.concatenate([hands, close]))
+        # of those, only what a palm contact measured on this frame reads: its palm, and the
+        # partner's vertices near that palm
+        need = ([], [])
+        for n, spec in palms:
+            if not active[n][f]:
+                continue
+            mine = _hand_vertices(model, spec.side)
+            v = verts[spec.actor][k][mine]
+            lo, hi = v.min(0) - DISTANCE_BAND, v.max(0) + DISTANCE_BAND
+            theirs = near[1 - spec.actor]
+            theirs = theirs[np.all((verts[1 - spec.actor][k][theirs] >= lo) & (verts[1 - spec.actor][k][theirs] <= hi), axis=1)]
+            partner_near[(n, k)] = theirs
+            need[spec.actor].append(mine)
+            need[1 - spec.actor].append(theirs)
+        need_a, need_b = (np.concatenate(x) if x else np.zeros(0, dtype=np.int64) for x in need)
+        dists.append(fast(verts[0][k], verts[1][k], DISTANCE_BAND, q[0], q[1], need_a, need_b))
     worst, worst_what = 0.0, ""
-    for spec, act in zip(chor.contacts, active):
+    for n, (spec, act) in enumerate(zip(chor.contacts, active)):
         torso = spec.side is None
         if torso:  # the pelvises carry the torsos
             track, partner = chor.controls[spec.actor], chor.controls[1 - spec.actor]
@@ -439,11 +470,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             mine = _hand_vertices(model, spec.side)
             gap = np.nanmin(d_mine[mine], initial=DISTANCE_BAND)
             # the partner's vertices that are near this palm
-            v = verts[spec.actor][k][mine]
-            lo, hi = v.min(0) - DISTANCE_BAND, v.max(0) + DISTANCE_BAND
-            theirs = near_hand[k][1 - spec.actor]
-            theirs = theirs[np.all((verts[1 - spec.actor][k][theirs] >= lo) & (verts[1 - spec.actor][k][theirs] <= hi), axis=1)]
-            gap = min(gap, np.nanmin(d_theirs[theirs], initial=DISTANCE_BAND))
+            gap = min(gap, np.nanmin(d_theirs[partner_near[(n, k)]], initial=DISTANCE_BAND))
             err[f] = CONTACT_GAP - gap  # > 0: too close, move apart; < 0: too far, move together
         guard = (spec.guard if spec.guard is not None else np.zeros(T, bool)) & ~spec.frames
         # guard frames measured now: the offset that would leave exactly CONTACT_GAP there, a
@@ -554,9 +581,9 @@ def _resolve_by_swivel(model, performers, chor: Choreography, poses, seq, distan
     import torch
     from scipy.ndimage import gaussian_filter1d
 
-    from dualhuman_builder.geometry.distance import get_pair_distance
+    from dualhuman_builder.sim.pairquery import get_fast_pair
 
-    pair = get_pair_distance()
+    pair = get_fast_pair()
     T = chor.controls[0].frames
     depth = -np.minimum(*(np.nan_to_num(d.astype(np.float32), nan=1.0).min(1) for d in distances))
     flagged = np.flatnonzero(depth > threshold)
