@@ -40,7 +40,7 @@ from dualhuman_builder.sync.priors import SITE_M
 
 
 def chain_links(segment: str) -> int:
-    """Segments from the pelvis to MVN ``segment``, both included (the pelvis: 1, a hand: 8)."""
+    """Segments from the pelvis to MVN ``segment``, both included (the pelvis: 1, a foot: 4, a hand: 9)."""
     n = 1
     while MVN_PARENTS[segment] is not None:
         segment, n = MVN_PARENTS[segment], n + 1
