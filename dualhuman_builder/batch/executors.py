@@ -27,8 +27,8 @@ from dualhuman_builder.errors import DualhumanError
 #: Memory a local worker is sized for (bytes): the most any stage task needs (:data:`STAGE_MEMORY`).
 WORKER_MEMORY = max(STAGE_MEMORY.values())
 #: Native thread pools of a local worker: one each, as Ray gives its tasks (a worker is one task on one CPU;
-#: OpenMP and BLAS pools sized to every core spin against each other across the workers, and the same
-#: takes ran half as fast as on Ray: ``benchmarks/bench_run.py``). A variable the user set is kept.
+#: OpenMP and BLAS pools sized to every core spin against each other across the workers;
+#: ``benchmarks/bench_run.py`` compares the executors on the same takes). A variable the user set is kept.
 WORKER_THREADS_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 #: Seconds a Ray address has to accept a connection before the run gives up.
 RAY_CONNECT_TIMEOUT_S = 5.0

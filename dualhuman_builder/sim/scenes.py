@@ -65,7 +65,7 @@ DISTANCE_BAND = 0.05
 #: contract (each a full generation; a draw breaks it rarely, so the chance that all of them do is small).
 MAX_DRAWS = 8
 #: torch CPU threads while a scene is generated: its body-model calls are many small batches, which
-#: run several times faster on one thread than split over a loaded machine's cores (and the same
+#: run faster on one thread than split over a loaded machine's cores (``docs/design/scenes.md``; the same
 #: answer on any machine); a process generating scenes in parallel runs one per core instead.
 TORCH_THREADS = 1
 SCENE_VERSION = 1
