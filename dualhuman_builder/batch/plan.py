@@ -37,7 +37,8 @@ GPU_STAGES = ("render",)
 class RunOptions:
     """What a batch run does: ``takes`` (None: all), ``until`` (the last stage, None: all),
     ``stages`` (only these, None: all), ``fps`` of the timeline for sync, fuse and fit (None: the
-    stages' default), ``mounts_from`` (a calibration take whose tracker mounts the others use),
+    stages' default), ``mounts_from`` (a calibration take whose tracker mounts every other take
+    uses; None: each take's own ``mounts_from`` meta, if any),
     ``retries`` (tries after the first, per stage), ``workers`` (local processes, None: sized from
     cores and memory)."""
 
@@ -101,24 +102,35 @@ def stage_state(ws, take: str, stage: str) -> str | None:
     return next((s for s in states if s != "done"), "done")
 
 
+def take_mounts_from(ws, take: str, options: RunOptions) -> str | None:
+    """The calibration take whose tracker mounts ``take``'s sync uses: ``options.mounts_from`` for
+    every take, else the take's own ``mounts_from`` meta (the studio day's calibration take, which
+    ``dualhuman synth`` records); None for the calibration take itself."""
+    mf = options.mounts_from or ws.take(take).meta.get("mounts_from")
+    return mf if isinstance(mf, str) and mf and mf != take else None
+
+
 def make_plan(ws, options: RunOptions) -> Plan:
     """The pending tasks of ``options`` in ``ws``: every wanted stage of every take that is not
-    done, in pipeline order per take; a take's sync waits for the calibration take's
-    (``mounts_from``)."""
+    done, in pipeline order per take; a take's sync waits for its calibration take's
+    (:func:`take_mounts_from`), which joins the run if it was not named."""
     takes = ws.takes() if options.takes is None else list(options.takes)
     known = set(ws.takes())
     missing = [t for t in takes if t not in known]
     if missing:
         raise DualhumanError(f"no take {missing[0]!r} in this workspace", fix=f"list the takes with `dualhuman status {ws.root}`")
-    if options.mounts_from is not None and options.mounts_from not in known:
-        raise DualhumanError(f"no calibration take {options.mounts_from!r} in this workspace",
-                             fix=f"list the takes with `dualhuman status {ws.root}`")  # fmt: skip
-    if options.mounts_from is not None and options.mounts_from not in takes:
-        takes = [options.mounts_from, *takes]
+    mounts = {t: take_mounts_from(ws, t, options) for t in takes}
+    for take, mf in mounts.items():
+        if mf is not None and mf not in known:
+            whose = "" if options.mounts_from else f" (take {take!r} names it as its mounts_from)"
+            raise DualhumanError(f"no calibration take {mf!r} in this workspace{whose}",
+                                 fix=f"list the takes with `dualhuman status {ws.root}`")  # fmt: skip
+    calibrations = {mf for mf in mounts.values() if mf is not None}
+    takes = [*[c for c in sorted(calibrations) if c not in takes], *takes]
     wanted = options.wanted()
     tasks, done, skipped = [], set(), {}
     for take in takes:
-        calibration = bool(ws.take(take).meta.get("calibration")) or take == options.mounts_from
+        calibration = bool(ws.take(take).meta.get("calibration")) or take in calibrations
         prev: tuple[str, str] | None = None
         for name in wanted:
             key = (take, name)
@@ -133,8 +145,8 @@ def make_plan(ws, options: RunOptions) -> Plan:
                 done.add(key)
                 continue
             task = Task(take, name, [prev] if prev else [])
-            if name == "sync" and options.mounts_from and take != options.mounts_from:
-                task.after.append((options.mounts_from, "sync"))
+            if name == "sync" and mounts.get(take):
+                task.after.append((mounts[take], "sync"))
             tasks.append(task)
             prev = key
     # a dependency already done (or skipped) is no dependency
@@ -152,24 +164,24 @@ def stage_call(stage: str, options: RunOptions) -> Callable[..., Any]:
     stage), or None when there was nothing to run."""
     timeline: dict[str, Any] = {} if options.fps is None else {"fps": options.fps}
 
-    def with_mounts(take: str) -> dict[str, Any]:
-        mf = options.mounts_from
-        return {**timeline, **({"mounts_from": mf} if mf and mf != take else {})}
+    def with_mounts(ws, take: str) -> dict[str, Any]:
+        mf = take_mounts_from(ws, take, options)
+        return {**timeline, **({"mounts_from": mf} if mf else {})}
 
     if stage in SEQUENCE_STAGES:
         return lambda ws, take, log: rerun_simulated(ws, take, stage, log)
     if stage == "sync":
         from dualhuman_builder.sync.stage import run_sync
 
-        return lambda ws, take, log: run_sync(ws, take, log=log, **with_mounts(take))
+        return lambda ws, take, log: run_sync(ws, take, log=log, **with_mounts(ws, take))
     if stage == "fuse":
         from dualhuman_builder.fit.stage import run_fuse
 
-        return lambda ws, take, log: run_fuse(ws, take, log=log, **with_mounts(take))
+        return lambda ws, take, log: run_fuse(ws, take, log=log, **with_mounts(ws, take))
     if stage == "fit":
         from dualhuman_builder.fit.stage import run_fit
 
-        return lambda ws, take, log: run_fit(ws, take, log=log, workers=1, **with_mounts(take))
+        return lambda ws, take, log: run_fit(ws, take, log=log, workers=1, **with_mounts(ws, take))
     if stage == "contacts":
         from dualhuman_builder.contacts.stage import run_contacts
 
@@ -188,8 +200,8 @@ def stage_call(stage: str, options: RunOptions) -> Callable[..., Any]:
 def rerun_simulated(ws, take: str, stage: str, log: Callable[[str], None]):
     """Run ``stage`` (``scene``, ``devices`` or ``capture``) of every sequence of ``take`` whose run
     is not done, with the parameters its earlier attempt recorded in the catalog; a sequence whose
-    stage never ran takes the parameters from the runs before it (the scene's seed; the take's
-    ``preset`` and ``speed`` meta, else ``ideal`` and real time). A live recording cannot be re-run:
+    stage never ran takes the parameters from the take's meta (``device_seed``, ``preset``, ``speed``)
+    and else from the runs before it (the scene's seed, ``ideal``, real time). A live recording cannot be re-run:
     a :class:`DualhumanError` says so."""
     from dualhuman_builder.capture.stage import run_capture
     from dualhuman_builder.sim.stage import (
@@ -215,7 +227,7 @@ def rerun_simulated(ws, take: str, stage: str, log: Callable[[str], None]):
             actors, shapes = [tuple(a) for a in p.pop("actors")], p.pop("shapes")
             result = run_scene(ws, take, seq.name, p, actors, shapes, log=log)
             continue
-        params = dict(rec["params"]) if rec is not None else {"seed": scene["params"]["seed"]}
+        params = dict(rec["params"]) if rec is not None else {"seed": meta.get("device_seed", scene["params"]["seed"])}
         if "url" in params:
             raise DualhumanError(f"the {stage} stage of {take}/{seq.name} recorded live devices ({params['url']}): "
                                  "it cannot be run again", fix="record the take again with `dualhuman capture`")  # fmt: skip

@@ -28,14 +28,18 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
 @click.option("--types", default=None, callback=_names, metavar="A,B",
               help=f"Interaction types to draw from (default: all of {', '.join(SYNTH_TYPES)}).")
 @click.option("--preset", type=click.Choice(["ideal", "realistic", "mixed"]), default="ideal", show_default=True,
-              help="Device errors of each take: 'mixed' gives half the takes 'realistic' and the rest 'ideal' "
+              help="Device errors of each studio day: 'mixed' gives half the days 'realistic' and the rest 'ideal' "
                    "(docs/guides/simulation-presets.md).")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the ground truth.")
 @click.option("--long-share", type=float, default=0.1, show_default=True,
               help="Share of the takes that are long 'session' takes chaining interactions.")
 @click.option("--long-duration", type=float, default=60.0, show_default=True, help="Seconds of each long take.")
+@click.option("--takes-per-day", type=int, default=6, show_default=True,
+              help="Takes of one studio day: one pair, one draw of the devices (so one set of tracker mounts) "
+                   "and one calibration take, whose mounts the day's takes are synced with. 1 gives every take "
+                   "its own pair.")
 @click.option("--actors", "pool", type=int, default=None,
-              help="Size of the actor pool (default: half the takes, 4 to 32).")
+              help="Size of the actor pool (default: two per studio day, 4 to 32).")
 @click.option("--hold-out-actors", type=int, default=0, show_default=True,
               help="Put every take of this many drawn actors in the test split (the rest in train).")
 @click.option("--hold-out-types", default=None, callback=_names, metavar="A,B",
@@ -52,13 +56,14 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
               help="The simulated devices play this many times faster than real time while recorded (full path).")
 @click.option("--plan-only", is_flag=True, help="Print the plan's summary and write WS/synth.json; make nothing.")
 def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float, long_share: float,
-          long_duration: float, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
+          long_duration: float, takes_per_day: int, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
           export_dir: Path | None, include_flagged: bool, speed: float, plan_only: bool):  # fmt: skip
     """Generate a varied synthetic dataset of TAKES simulated takes into WORKSPACE (created if missing).
 
     The plan (WORKSPACE/synth.json) is drawn from the seed: an actor pool over statures, genders
-    and build, each take's pair, interaction type, tempo, approach distance, device errors and
-    split, and a share of long takes. Run again with the same arguments, it resumes (takes made
+    and build; studio days, each with a pair, a draw of the devices and their errors, and a
+    calibration take; each take's interaction type, tempo, approach distance and split, and a
+    share of long takes. `dualhuman run` syncs each take with its day's tracker mounts. Run again with the same arguments, it resumes (takes made
     before are skipped); with other arguments, it refuses. One line per take; exits 1 when a
     take's scene met no quality contract.
 
@@ -74,7 +79,7 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
     from dualhuman_builder.sim.synth import SynthOptions, describe_plan, make_synthetic, plan_synthetic
 
     options = SynthOptions(takes=takes, seed=seed, types=types or SYNTH_TYPES, preset=preset, fps=fps,
-                           long_share=long_share, long_duration=long_duration, actors=pool,
+                           long_share=long_share, long_duration=long_duration, takes_per_day=takes_per_day, actors=pool,
                            hold_out_actors=hold_out_actors, hold_out_types=hold_out_types or (), speed=speed)  # fmt: skip
     plan = plan_synthetic(options)
     for line in describe_plan(plan):
@@ -98,7 +103,8 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
     else:
         result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged,
                                 log=lambda m: None, progress=say)  # fmt: skip
-    console.print(f"{len(result.made)} made, {len(result.skipped)} made before, {len(result.failed)} failed "
+    days = f" (and {len(result.calibrations)} studio days' calibration takes)" if result.calibrations else ""
+    console.print(f"{len(result.made)} made, {len(result.skipped)} made before, {len(result.failed)} failed{days} "
                   f"in {result.seconds:.0f} s", highlight=False)  # fmt: skip
     if result.manifest is not None:
         c = result.manifest["counts"]

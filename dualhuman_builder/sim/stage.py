@@ -144,10 +144,11 @@ def load_scene(ws, take: str, sequence: str):
 
 def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[tuple[str, float, str]],
                   shapes: Sequence[dict], *, speed: float = 1.0, model=None, force: bool = False,
-                  log: Callable[[str], None] = print, preset: str = "ideal") -> dict:  # fmt: skip
+                  log: Callable[[str], None] = print, preset: str = "ideal", device_seed: int | None = None) -> dict:  # fmt: skip
     """Register ``take`` (rig ``sim``, the ``actors``) with its one ``sequence`` if new, then run
     its ``scene``, ``devices`` and ``capture`` stages: a generated scene, its simulated devices
-    (device seed ``params["seed"]``, device error ``preset``), and their recording through real
+    (device seed ``device_seed``, by default the scene's ``params["seed"]``; takes of one studio day
+    share theirs, and so their tracker mounts; device error ``preset``), and their recording through real
     loopback transports at ``speed`` times real time. The take's ``sync``, ``fuse`` and ``fit``
     stages then read that recording. Returns ``{stage: StageResult}``."""
     from dualhuman_builder.capture.stage import run_capture
@@ -166,11 +167,12 @@ def simulate_take(ws, take: str, sequence: str, params: dict, actors: Sequence[t
             seconds, labels = params.get("duration") or NATURAL_DURATION[params["type"]], (params["type"],)
         ws.add_sequence(take, sequence, 0, int(round(seconds * params["fps"])), labels=labels)
     results = {"scene": run_scene(ws, take, sequence, params, actors, shapes, model=model, force=force, log=log)}
-    results["devices"] = run_devices(ws, take, sequence, params["seed"], force=force, log=log, preset=preset)
+    seed = int(params["seed"] if device_seed is None else device_seed)
+    results["devices"] = run_devices(ws, take, sequence, seed, force=force, log=log, preset=preset)
     scene_path = SCENE.artifact(ws, take, SCENE_FILE, sequence)
-    url = device_url(scene_path, params["seed"], preset)
+    url = device_url(scene_path, seed, preset)
     results["capture"] = run_capture(ws, take, sequence, url, speed=speed,
-                                     params=_device_params(params["seed"], preset, speed=speed),
+                                     params=_device_params(seed, preset, speed=speed),
                                      depends_on=[("scene", sequence)], force=force, log=log)  # fmt: skip
     return results
 

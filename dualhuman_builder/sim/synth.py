@@ -3,21 +3,31 @@
 :func:`plan_synthetic` draws the plan of ``N`` takes from :class:`SynthOptions` (numbers only,
 no body model: the same options give the same plan, byte for byte): a pool of actors over statures,
 genders and build (anny phenotypes within the adult ranges of :data:`STATURE_M` and :data:`BUILD`),
-each take's pair of them, interaction type (shuffled rounds over the chosen types, so each comes up
-equally often), scene seed, tempo (:data:`TEMPO`), approach distance (:data:`APPROACH_SPREAD_M`
-about the type's own), device error preset, duration, and its split (train or test, when actors or
-types are held out). A share of the takes are long ``session`` takes that chain interactions
+studio days (``takes_per_day`` takes each: one pair of them, one draw of the simulated devices and
+so one set of tracker mounts, one device error preset, and a calibration take), each take's
+interaction type (shuffled rounds over the chosen types, so each comes up equally often), scene
+seed, tempo (:data:`TEMPO`), approach distance (:data:`APPROACH_SPREAD_M` about the type's own),
+duration, and its split (train or test, when actors or types are held out). A share of the takes are long ``session`` takes that chain interactions
 (:mod:`.session`). :func:`make_synthetic` writes the plan to ``WS/synth.json``, registers the
 actors, and makes the takes:
 
-* ``path="full"``: each take's ``scene``, ``devices`` and ``capture`` stages, as ``dualhuman sim
-  take`` does, labelled from its scene; ``dualhuman run WS`` then runs sync ... sheet. A take whose
+* ``path="full"``: each day's calibration take, then each take's ``scene``, ``devices`` and
+  ``capture`` stages, as ``dualhuman sim take`` does, labelled from its scene and recording its
+  day's calibration take as ``mounts_from``; ``dualhuman run WS`` then runs sync ... sheet, each
+  take's sync with its day's tracker mounts (as a studio records one calibration take per day,
+  :doc:`decision 0013 <docs/decisions/0013-calibration-take.md>`). A take whose
   stages the catalog records done is skipped, so a second call resumes. With ``export``, the takes
   fitted so far are exported with the plan's split.
 * ``path="ground-truth"``: scene -> export, no devices and no fit: each scene (kept in
   ``WS/synth/scenes/TAKE-gN.npz``, N the generator's version, so a second call resumes) gives the
   ground-truth bodies and, by the contacts stage's own computation on them, the contacts; every
   sequence's ``meta.source`` and the manifest's ``source`` say ``"ground-truth"``.
+
+Why days: the trackers' mounts are the studio's, strapped once per day; a take synced without a
+calibration take knows the trackers' shared offset, and the body's root with it, only to about
+14 mm, which the sync reports as a warning and the quality gates flag. A day's pair keeps its order
+(the simulated devices draw each tracker's mount per actor slot), so a ``dance_turn`` is drawn only in
+a day whose first actor is the taller (the leader turns the partner under the joined hands).
 
 Not varied: handedness (every scene type's choreography fixes which hands act: a right-hand
 handshake, A's right palm against B's left in a high five...), so the plan has none.
@@ -39,7 +49,7 @@ from dualhuman_builder.sim.scenes import NATURAL_DURATION, SCENE_TYPES, SESSION_
 
 #: The plan's file in the workspace, its format name and version.
 PLAN_FILE = "synth.json"
-PLAN_FORMAT, PLAN_VERSION = "dualhuman-synth-plan", 1
+PLAN_FORMAT, PLAN_VERSION = "dualhuman-synth-plan", 2
 #: Where the ground-truth path keeps its scenes (under the workspace).
 SCENES_DIR = "synth/scenes"
 #: The two ways through: every stage (``dualhuman run`` after), or scene straight to the export.
@@ -71,6 +81,8 @@ LONG_DURATION_S, MIN_LONG_DURATION_S = 60.0, 10.0
 #: Types whose actor 0 acts and actor 1 reacts (the pusher, the one who pats, the leader of the
 #: turn): exported with roles ``("actor", "reactor")``.
 ONE_SIDED = ("push", "pat_on_back", "dance_turn")
+#: Takes of one studio day by default: a pair records a few interactions after its calibration take.
+TAKES_PER_DAY = 6
 #: Most takes one plan holds (its JSON stays a few MB).
 MAX_TAKES = 100_000
 #: Contents of the export of the ground-truth path (it has no renders).
@@ -87,7 +99,8 @@ class SynthOptions:
     types drawn from (:data:`~dualhuman_builder.sim.scenes.SCENE_TYPES`); ``preset``: device errors
     (:data:`SYNTH_PRESETS`); ``fps``: of the ground truth; ``long_share``: share of the takes that
     are long ``session`` takes (rounded to a whole number of takes); ``long_duration``: their length
-    (s); ``actors``: size of the actor pool (None: half the takes, between 4 and 32);
+    (s); ``takes_per_day``: takes of one studio day (one pair, one device draw and preset, one
+    calibration take); ``actors``: size of the actor pool (None: two per day, between 4 and 32);
     ``hold_out_actors``: this many drawn actors, and every take with one of them, go to test;
     ``hold_out_types``: every take of these types goes to test (and every long take, which chains
     all types); ``speed``: the simulated devices play this many times faster than real time while
@@ -100,13 +113,18 @@ class SynthOptions:
     fps: float = 30.0
     long_share: float = 0.1
     long_duration: float = LONG_DURATION_S
+    takes_per_day: int = TAKES_PER_DAY
     actors: int | None = None
     hold_out_actors: int = 0
     hold_out_types: tuple[str, ...] = ()
     speed: float = 1.0
 
     def pool_size(self) -> int:
-        return self.actors if self.actors is not None else min(32, max(4, self.takes // 2))
+        return self.actors if self.actors is not None else min(32, max(4, 2 * self.days()))
+
+    def days(self) -> int:
+        """How many studio days the takes fill."""
+        return -(-int(self.takes) // int(self.takes_per_day))
 
     def arguments(self) -> dict[str, Any]:
         """The options as the plan records them (the default pool size resolved)."""
@@ -114,7 +132,7 @@ class SynthOptions:
         d.update(takes=int(self.takes), seed=int(self.seed), hold_out_actors=int(self.hold_out_actors),
                  types=list(self.types), hold_out_types=list(self.hold_out_types), actors=int(self.pool_size()),
                  fps=float(self.fps), long_share=float(self.long_share), long_duration=float(self.long_duration),
-                 speed=float(self.speed))  # fmt: skip
+                 speed=float(self.speed), takes_per_day=int(self.takes_per_day))  # fmt: skip
         return d
 
 
@@ -123,6 +141,10 @@ def check_options(o: SynthOptions) -> None:
     if isinstance(o.takes, bool) or not isinstance(o.takes, (int, np.integer)) or not 1 <= o.takes <= MAX_TAKES:
         raise SynthError(f"a synthetic dataset has 1 to {MAX_TAKES} takes, not {o.takes!r}",
                          fix=f"pass --takes from 1 to {MAX_TAKES}")  # fmt: skip
+    if isinstance(o.takes_per_day, bool) or not isinstance(o.takes_per_day, (int, np.integer)) \
+            or not 1 <= o.takes_per_day <= 1000:  # fmt: skip
+        raise SynthError(f"a studio day has 1 to 1000 takes, not {o.takes_per_day!r}",
+                         fix=f"pass --takes-per-day from 1 to 1000 ({TAKES_PER_DAY} by default)")  # fmt: skip
     if isinstance(o.seed, bool) or not isinstance(o.seed, (int, np.integer)) or o.seed < 0:
         raise SynthError(f"the seed must be a whole number >= 0, not {o.seed!r}", fix="pass --seed 0 or another")
     for name in ("types", "hold_out_types"):
@@ -172,7 +194,8 @@ def plan_synthetic(options: SynthOptions) -> dict[str, Any]:
     """The plan of ``options`` (JSON-able; the same options give the same plan): ``arguments``,
     ``ranges``, ``actors`` (name, stature m, gender, anny build values, held out), ``takes`` (take,
     sequence, type, seed, actors, tempo, approach distance m or None, duration s, preset, fps,
-    split or None) and ``split`` (None without hold-outs: the export then draws it). Raises
+    split or None, day, device seed, ``mounts_from``: the day's calibration take), ``days`` (day,
+    calibration take and its scene seed, actors in order, device seed, preset) and ``split`` (None without hold-outs: the export then draws it). Raises
     :class:`SynthError` for invalid options, and for hold-outs that leave train or test empty."""
     check_options(options)
     o = options
@@ -184,35 +207,46 @@ def plan_synthetic(options: SynthOptions) -> dict[str, Any]:
         gender = ("female", "male")[int(r_actors.integers(0, 2))]
         actors.append({"name": f"synth-{i + 1:0{width}d}", "stature_m": _draw(r_actors, STATURE_M[gender]),
                        "gender": gender, **{k: _draw(r_actors, v) for k, v in BUILD.items()}})  # fmt: skip
-    n = int(o.takes)
+    n, per_day, n_days = int(o.takes), int(o.takes_per_day), o.days()
     n_long = int(round(o.long_share * n))
     long = set(r_takes.choice(n, n_long, replace=False).tolist()) if n_long else set()
-    rounds: list[str] = []
-    presets = {"ideal": ["ideal"] * n, "realistic": ["realistic"] * n}.get(o.preset)
-    if presets is None:  # mixed: half realistic (rounded down), at drawn places
-        presets = ["ideal"] * n
-        for k in r_preset.permutation(n)[: n // 2]:
+    presets = {"ideal": ["ideal"] * n_days, "realistic": ["realistic"] * n_days}.get(o.preset)
+    if presets is None:  # mixed: half the days realistic (rounded down), at drawn places
+        presets = ["ideal"] * n_days
+        for k in r_preset.permutation(n_days)[: n_days // 2]:
             presets[int(k)] = "realistic"
-    takes = []
-    for k in range(n):
-        if k in long:
-            kind = SESSION_TYPE
-        else:
-            if not rounds:  # shuffled rounds: each type equally often
-                rounds = [o.types[j] for j in r_takes.permutation(len(o.types))]
-            kind = rounds.pop(0)
+    days, takes, rounds = [], [], []
+    digits = max(3, len(str(n_days)))
+    for d in range(n_days):
         pair = [int(i) for i in r_takes.choice(n_pool, 2, replace=False)]
-        if kind == "dance_turn":  # the taller one leads the turn, under the joined hands
+        if tuple(o.types) == ("dance_turn",):  # nothing else to dance: the taller one leads every day
             pair.sort(key=lambda i: -actors[i]["stature_m"])
-        seed = int(r_takes.integers(0, 2**31 - 1))
-        tempo = _draw(r_takes, TEMPO)
-        approach = None
-        if kind in APPROACH_M:
-            approach = _draw(r_takes, (APPROACH_M[kind] - APPROACH_SPREAD_M, APPROACH_M[kind] + APPROACH_SPREAD_M))
-        duration = float(o.long_duration) if kind == SESSION_TYPE else round(NATURAL_DURATION[kind] / tempo, 3)
-        takes.append({"take": f"S{k + 1:04d}", "sequence": kind, "type": kind, "seed": seed,
-                      "actors": [actors[i]["name"] for i in pair], "tempo": tempo, "approach_distance_m": approach,
-                      "duration_s": duration, "preset": presets[k], "fps": float(o.fps), "split": None})  # fmt: skip
+        day = {"day": f"D{d + 1:0{digits}d}", "calibration_take": f"C{d + 1:0{digits}d}",
+               "actors": [actors[i]["name"] for i in pair], "device_seed": int(r_takes.integers(0, 2**31 - 1)),
+               "calibration_seed": int(r_takes.integers(0, 2**31 - 1)), "preset": presets[d]}  # fmt: skip
+        leader_taller = actors[pair[0]]["stature_m"] >= actors[pair[1]]["stature_m"]
+        for k in range(d * per_day, min(n, (d + 1) * per_day)):
+            if k in long:
+                kind = SESSION_TYPE
+            else:
+                # shuffled rounds: each type equally often. The taller one leads a dance turn: a day whose
+                # first actor is shorter takes the next type, and the turn waits for a day that can dance it
+                can = [i for i, t in enumerate(rounds) if t != "dance_turn" or leader_taller]
+                while not can:
+                    rounds += [o.types[j] for j in r_takes.permutation(len(o.types))]
+                    can = [i for i, t in enumerate(rounds) if t != "dance_turn" or leader_taller]
+                kind = rounds.pop(can[0])
+            seed = int(r_takes.integers(0, 2**31 - 1))
+            tempo = _draw(r_takes, TEMPO)
+            approach = None
+            if kind in APPROACH_M:
+                approach = _draw(r_takes, (APPROACH_M[kind] - APPROACH_SPREAD_M, APPROACH_M[kind] + APPROACH_SPREAD_M))
+            duration = float(o.long_duration) if kind == SESSION_TYPE else round(NATURAL_DURATION[kind] / tempo, 3)
+            takes.append({"take": f"S{k + 1:04d}", "sequence": kind, "type": kind, "seed": seed, "actors": day["actors"],
+                          "tempo": tempo, "approach_distance_m": approach, "duration_s": duration,
+                          "preset": day["preset"], "fps": float(o.fps), "split": None, "day": day["day"],
+                          "device_seed": day["device_seed"], "mounts_from": day["calibration_take"]})  # fmt: skip
+        days.append(day)
     held_actors = sorted(actors[int(i)]["name"] for i in r_split.choice(n_pool, o.hold_out_actors, replace=False))
     for a in actors:
         a["held_out"] = a["name"] in held_actors
@@ -235,7 +269,7 @@ def plan_synthetic(options: SynthOptions) -> dict[str, Any]:
               "tempo": list(TEMPO), "approach_distance_m": approach, "long_take_types": list(SCENE_TYPES)}  # fmt: skip
     return {"format": PLAN_FORMAT, "version": PLAN_VERSION, "arguments": o.arguments(), "ranges": ranges,
             "not_varied": {"handedness": "fixed by each scene type's choreography (e.g. a right-hand handshake)"},
-            "actors": actors, "takes": takes, "split": split}  # fmt: skip
+            "actors": actors, "days": days, "takes": takes, "split": split}  # fmt: skip
 
 
 def plan_bytes(plan: dict) -> bytes:
@@ -325,12 +359,13 @@ def _register_actors(ws, plan: dict, model, log: Callable[[str], None]) -> dict[
 
 @dataclass
 class SynthResult:
-    """What :func:`make_synthetic` did: the ``plan``, the takes ``made`` now, ``skipped`` (made
-    before), ``failed`` (take -> error: no scene met the quality contract), and the export's
+    """What :func:`make_synthetic` did: the ``plan``, the takes ``made`` now, the studio days'
+    ``calibrations`` (made now or before), ``skipped`` (takes made before), ``failed`` (take -> error: no scene met the quality contract), and the export's
     ``manifest`` (None without one)."""
 
     plan: dict
     made: list[str] = field(default_factory=list)
+    calibrations: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     manifest: dict | None = None
@@ -379,7 +414,11 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
         actors = _register_actors(ws, plan, model, log)
         n = len(plan["takes"])
         if path == "full":
+            days = {d["day"]: d for d in plan["days"]}
             for k, t in enumerate(plan["takes"], 1):
+                day = days.pop(t["day"], None)
+                if day is not None:  # the day's calibration take comes before its first take
+                    _make_calibration(ws, day, actors, options, model, log, say, result)
                 _make_full(ws, t, actors, options, model, log, say, f"[{k}/{n}]", result)
             if export is not None:
                 result.manifest = export_fitted(ws, export, plan, include_flagged=include_flagged, log=log)
@@ -401,7 +440,8 @@ def _make_full(ws, t: dict, actors: dict, options: SynthOptions, model, log, say
 
     take = t["take"]
     meta = {"simulated": True, "calibration": False, "preset": t["preset"], "speed": float(options.speed),
-            "synth": {"seed": options.seed, "type": t["type"], "split": t["split"]}}  # fmt: skip
+            "device_seed": t["device_seed"], "mounts_from": t["mounts_from"],
+            "synth": {"seed": options.seed, "type": t["type"], "split": t["split"], "day": t["day"]}}  # fmt: skip
     if take in ws.takes():
         have = ws.take(take)
         if have.meta.get("synth") != meta["synth"] or list(have.actors) != list(t["actors"]):
@@ -414,7 +454,7 @@ def _make_full(ws, t: dict, actors: dict, options: SynthOptions, model, log, say
     t1 = time.perf_counter()
     try:
         ran = simulate_take(ws, take, t["sequence"], _scene_params(t), pair, shapes, speed=float(options.speed),
-                            model=model, log=log, preset=t["preset"])  # fmt: skip
+                            model=model, log=log, preset=t["preset"], device_seed=t["device_seed"])  # fmt: skip
     except ValueError as e:  # no draw met the contract (SceneContractError), or the scene refused its parameters
         result.failed[take] = getattr(e, "message", str(e))
         say(f"{counter} {_describe(t)}: FAILED: {result.failed[take]}")
@@ -426,6 +466,38 @@ def _make_full(ws, t: dict, actors: dict, options: SynthOptions, model, log, say
     else:
         result.made.append(take)
         say(f"{counter} {_describe(t)}: made in {time.perf_counter() - t1:.1f} s")
+
+
+def _make_calibration(ws, day: dict, actors: dict, options: SynthOptions, model, log, say,
+                      result: SynthResult) -> None:  # fmt: skip
+    """The studio day's calibration take (a bow, a twist, a turn on the spot: the ``calibration``
+    scene) with the day's pair and device draw; its sync gives the day's takes their tracker mounts."""
+    from dualhuman_builder.sim.stage import simulate_take
+
+    take = day["calibration_take"]
+    meta = {"simulated": True, "calibration": True, "preset": day["preset"], "speed": float(options.speed),
+            "device_seed": day["device_seed"], "synth": {"seed": options.seed, "type": "calibration", "day": day["day"]}}
+    if take in ws.takes():
+        have = ws.take(take)
+        if have.meta.get("synth") != meta["synth"] or list(have.actors) != list(day["actors"]):
+            raise SynthError(f"take {take!r} exists in this workspace and is not this plan's",
+                             fix="use a new workspace for this synthetic dataset")  # fmt: skip
+    else:
+        ws.add_take(take, rig="sim", actors=list(day["actors"]), meta=meta)
+    params = {"type": "calibration", "seed": day["calibration_seed"], "fps": float(options.fps)}
+    t1 = time.perf_counter()
+    try:
+        ran = simulate_take(ws, take, "calibration", params, [actors[a][0] for a in day["actors"]],
+                            [actors[a][1] for a in day["actors"]], speed=float(options.speed), model=model, log=log,
+                            preset=day["preset"], device_seed=day["device_seed"])  # fmt: skip
+    except ValueError as e:
+        result.failed[take] = getattr(e, "message", str(e))
+        say(f"day {day['day']}: calibration take {take}: FAILED: {result.failed[take]}")
+        return
+    done = all(r.skipped for r in ran.values())
+    result.calibrations.append(take)
+    say(f"day {day['day']}: calibration take {take} ({' + '.join(day['actors'])}, {day['preset']}): "
+        + ("made before" if done else f"made in {time.perf_counter() - t1:.1f} s"))
 
 
 def _annotate_from_scene(ws, take: str, t: dict) -> None:
@@ -554,7 +626,8 @@ def describe_plan(plan: dict) -> list[str]:
     g = {s: sum(a["gender"] == s for a in plan["actors"]) for s in ("female", "male")}
     stat = [a["stature_m"] for a in plan["actors"]]
     lines = [f"{len(takes)} takes: " + ", ".join(f"{k} {v}" for k, v in sorted(by_type.items())),
-             f"devices: {presets['ideal']} ideal, {presets['realistic']} realistic",
+             f"devices: {presets['ideal']} ideal, {presets['realistic']} realistic, over {len(plan['days'])} studio "
+             f"day(s), each with its calibration take",
              f"actors: {len(plan['actors'])} ({g['female']} female, {g['male']} male), "
              f"{min(stat):.2f}-{max(stat):.2f} m"]  # fmt: skip
     if plan["split"]:

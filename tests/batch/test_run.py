@@ -34,6 +34,27 @@ def test_the_plan_holds_the_pending_stages_in_order_and_skips_what_is_done(works
     assert plan.done == {(t, s) for t in TAKES for s in ("scene", "devices", "capture")}
 
 
+def test_each_take_syncs_with_its_own_calibration_take_and_an_unknown_one_is_a_clear_error(ws):
+    from dualhuman_builder.batch.plan import stage_call, take_mounts_from
+    from dualhuman_builder.errors import DualhumanError
+    from dualhuman_builder.resources import RIGS_DIR
+
+    ws.add_rig(RIGS_DIR / "sim.toml")
+    ws.add_take("C1", rig="sim", actors=[], meta={"calibration": True})
+    ws.add_take("C2", rig="sim", actors=[])  # a calibration take only because a take names it
+    ws.add_take("A", rig="sim", actors=[], meta={"mounts_from": "C1"})
+    ws.add_take("B", rig="sim", actors=[], meta={"mounts_from": "C2"})
+    plan = make_plan(ws, RunOptions(takes=("B",), until="fit"))
+    assert [t.key for t in plan.tasks] == [("C2", "sync"), ("B", "sync"), ("B", "fuse"), ("B", "fit")]
+    assert plan.tasks[1].after == [("C2", "sync")] and ("C2", "fit") in plan.skipped
+    assert [take_mounts_from(ws, t, RunOptions()) for t in ("A", "B", "C1")] == ["C1", "C2", None]
+    assert take_mounts_from(ws, "B", RunOptions(mounts_from="C1")) == "C1"  # the command's option wins
+    assert stage_call("sync", RunOptions()) is not None
+    ws.add_take("X", rig="sim", actors=[], meta={"mounts_from": "GONE"})
+    with pytest.raises(DualhumanError, match="no calibration take 'GONE'.*take 'X' names it"):
+        make_plan(ws, RunOptions(takes=("X",)))
+
+
 def test_a_local_run_does_every_pending_stage_and_a_second_run_nothing(workspace):
     events = []
     summary = run_workspace(workspace, RunOptions(until="fuse", fps=FPS), on_event=lambda *e: events.append(e[:3]))

@@ -44,8 +44,11 @@ def test_plan_varies_within_its_documented_ranges():
             assert t["approach_distance_m"] is None
         assert t["split"] is None
     interactions = [v for k, v in counts.items() if k != "session"]
-    assert len(interactions) == 6 and max(interactions) - min(interactions) <= 1  # shuffled rounds
-    assert sum(t["preset"] == "realistic" for t in takes) == 20  # mixed: half
+    # shuffled rounds; a dance turn may wait for a day whose first actor is the taller
+    assert len(interactions) == 6 and max(interactions) - min(interactions) <= 3
+    days = plan["days"]
+    assert len(days) == 7  # 40 takes, 6 a day
+    assert sum(d["preset"] == "realistic" for d in days) == 3  # mixed: half the days, rounded down
     assert len({t["seed"] for t in takes}) == 40 and len({t["tempo"] for t in takes}) > 30
     genders = {a["gender"] for a in plan["actors"]}
     assert genders == {"female", "male"}
@@ -58,6 +61,23 @@ def test_plan_varies_within_its_documented_ranges():
     for t in takes:  # the taller partner leads a dance turn
         if t["type"] == "dance_turn":
             assert by_name[t["actors"][0]] >= by_name[t["actors"][1]]
+
+
+def test_a_studio_day_shares_its_pair_devices_preset_and_calibration_take():
+    plan = plan_synthetic(SynthOptions(takes=13, seed=9, preset="mixed", takes_per_day=4))
+    days = {d["day"]: d for d in plan["days"]}
+    assert len(days) == 4 and len({d["device_seed"] for d in days.values()}) == 4
+    assert len({d["calibration_take"] for d in days.values()} | {t["take"] for t in plan["takes"]}) == 17
+    for k, t in enumerate(plan["takes"]):
+        d = days[t["day"]]
+        assert t["day"] == plan["days"][k // 4]["day"]
+        assert t["actors"] == d["actors"] and t["device_seed"] == d["device_seed"] and t["preset"] == d["preset"]
+        assert t["mounts_from"] == d["calibration_take"]
+    assert len({t["seed"] for t in plan["takes"]}) == 13  # each take its own scene
+    assert plan["arguments"]["takes_per_day"] == 4 and plan["arguments"]["actors"] == 8  # two per day
+    with pytest.raises(SynthError, match="a studio day has 1 to 1000 takes") as e:
+        plan_synthetic(SynthOptions(takes=3, takes_per_day=0))
+    assert "--takes-per-day" in e.value.fix
 
 
 def test_hold_outs_put_actors_and_types_in_test_only():
@@ -225,24 +245,31 @@ def test_full_path_makes_the_first_stages_and_resumes(tmp_path, body_model):
                            speed=8.0)
     root = tmp_path / "ws"
     first = make_synthetic(root, options, model=body_model, log=lambda m: None, progress=lambda m: None)
-    assert first.made == ["S0001"] and not first.failed
+    assert first.made == ["S0001"] and first.calibrations == ["C001"] and not first.failed
     t = first.plan["takes"][0]
     with Workspace.open(root) as ws:
         assert list(ws.take("S0001").actors) == t["actors"] and ws.take("S0001").meta["preset"] == "realistic"
         for stage in ("scene", "devices", "capture"):
             assert ws.stage_record(stage, "S0001", "high_five")["status"] == "done"
+            assert ws.stage_record(stage, "C001", "calibration")["status"] == "done"
         scene = ws.stage_record("scene", "S0001", "high_five")["params"]
         assert scene["tempo"] == t["tempo"] and scene["approach_distance"] == t["approach_distance_m"]
+        # the day's takes share one draw of the devices (so their tracker mounts), not their scenes
+        devices = [ws.stage_record("devices", k, q)["params"] for k, q in (("S0001", "high_five"), ("C001", "calibration"))]
+        assert devices[0] == devices[1] == {"seed": t["device_seed"], "preset": "realistic"}
+        assert ws.take("C001").meta["calibration"] and list(ws.take("C001").actors) == t["actors"]
         assert [a.labels for a in ws.annotations("S0001")] == [("high_five",)]
-        plan = make_plan(ws, RunOptions())
-        assert [x.stage for x in plan.tasks][:1] == ["sync"]  # `dualhuman run` goes on from here
+        plan = make_plan(ws, RunOptions(takes=("S0001",)))  # `dualhuman run` goes on from here
+        assert [x.key for x in plan.tasks][:2] == [("C001", "sync"), ("S0001", "sync")]
+        assert plan.tasks[1].after == [("C001", "sync")]
+        assert plan.skipped[("C001", "fit")].startswith("a calibration take")
     with pytest.raises(SynthError, match="no take of the plan has a complete fit") as e:  # resumed; nothing to export
         make_synthetic(root, options, export=tmp_path / "out", model=body_model, log=lambda m: None,
                        progress=lambda m: None)
     assert "dualhuman run" in e.value.fix
     lines = []
     again = make_synthetic(root, options, model=body_model, log=lambda m: None, progress=lines.append)
-    assert again.made == [] and again.skipped == ["S0001"] and "made before" in lines[0]
+    assert again.made == [] and again.skipped == ["S0001"] and all("made before" in x for x in lines[:2])
 
 
 def test_a_take_whose_scene_is_refused_is_reported_failed_and_the_others_go_on(ground_truth, body_model):
