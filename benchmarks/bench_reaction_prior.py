@@ -1,0 +1,227 @@
+"""The reaction prior of the Dual-Human paper on our data: the paper's refinement experiment with its
+ablations, reaction generation from the actor alone, and training speed.
+
+For each variant (the full model; the paper's Table 4 ablations: without the motion VAE, the INN
+replaced by an MLP, without noise augmentation) and each training seed, the prior is trained on the
+export's train split (`models.training.train`), then every test sequence's reactor is corrupted by the
+visibility-driven noise (`reaction_prior.noise`, the same draw for every variant and seed) and refined
+with the prior (`reaction_prior.refine`: windows of 64, half overlap, lambda_prior 0.01). Figures, as
+mean ± std over seeds: MPJPE (root-relative), PA-MPJPE and translation (pelvis) error of the reactor
+before and after, in mm (`models.metrics`). Reaction generation: the reactor decoded from the prior's
+mean given the clean actor, per test window: Fréchet distance of joint positions and diversity against
+the held-out reactions, proxy penetration and proxy contact F1 against the ground truth. Speed:
+training windows/s and the loader's share of a step, from the run's summary. A refined export is
+written once with `refine_export` and checked with `export verify`.
+
+    python benchmarks/bench_reaction_prior.py --export WS/export --seeds 3          # the experiment
+    python benchmarks/bench_reaction_prior.py --quick --out /tmp/rp.json            # a tiny check
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_file import Goal, Table, write_results
+
+ROOT = Path(__file__).resolve().parents[1]
+VARIANTS = {
+    "full": {},
+    "no_vae": {"use_vae": False},
+    "mlp": {"mapper": "mlp"},
+    "no_noise": {"noise_augment": False},
+}
+#: --quick: a tiny model and a few steps, to check the script end to end (figures mean nothing)
+QUICK = {"window": 32, "latent_dim": 16, "layers": 1, "heads": 2, "ff": 32, "dropout": 0.0, "mapper_blocks": 2,
+         "mapper_hidden": 32, "vae_steps": 20, "inn_steps": 10, "stats_batches": 4, "dct_coeffs": 4,
+         "eval_refine_windows": 2, "eval_refine_iterations": 3}  # fmt: skip
+
+
+def _test_sequences(export: Path, split: str) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(seq_id, actor joints, reactor joints)`` of the split, roles resolved as the training data does."""
+    from dualhuman_builder.export.files import read_manifest
+    from dualhuman_builder.models.data import actor_is_b, read_sequence, split_ids
+
+    manifest = read_manifest(export)
+    out = []
+    for sid in split_ids(export, manifest, split):
+        motion, text = read_sequence(export, sid)
+        a, b = motion["a.joints"].astype(np.float32), motion["b.joints"].astype(np.float32)
+        out.append((sid, b, a) if actor_is_b(text) else (sid, a, b))
+    return out
+
+
+def _refinement(module, seqs, config: dict, window: int, iterations: int, lambda_prior: float, device: str) -> dict:
+    from dualhuman_builder.models import metrics
+    from dualhuman_builder.models.reaction_prior.refine import corrupt_sequence, refine_sequence
+    from dualhuman_builder.models.visibility import joint_visibility
+
+    truth, noisy, refined = [], [], []
+    for sid, actor, reactor in seqs:
+        _, vis_b = joint_visibility(actor, reactor)
+        n = corrupt_sequence(reactor, vis_b, config, 0, sid)  # seed 0: the same draw for every variant and seed
+        r, _ = refine_sequence(module, actor, n, window, lambda_prior, iterations, device=device)
+        truth.append(reactor), noisy.append(n), refined.append(r)
+    t, n, r = (np.concatenate(x) for x in (truth, noisy, refined))
+
+    def figs(p):
+        return {"mpjpe_mm": metrics.mpjpe(p, t), "pa_mpjpe_mm": metrics.pa_mpjpe(p, t),
+                "translation_mm": metrics.translation_error(p, t),
+                "joint_error_mm": metrics.mpjpe(p, t, root=None)}  # fmt: skip
+
+    before, after = figs(n), figs(r)
+    return {"before": before, "after": after, "mpjpe_reduction": 1.0 - after["mpjpe_mm"] / before["mpjpe_mm"],
+            "frames": len(t)}  # fmt: skip
+
+
+def _generation(module, seqs, window: int, device: str) -> dict:
+    from dualhuman_builder.models import metrics
+    from dualhuman_builder.models.reaction_prior.refine import window_starts
+    from dualhuman_builder.models.reaction_prior.representation import canonical_pair, to_world
+
+    wa, wr = [], []
+    for _, actor, reactor in seqs:
+        if len(actor) < window:
+            continue
+        for s in window_starts(len(actor), window):
+            wa.append(actor[s : s + window]), wr.append(reactor[s : s + window])
+    if len(wa) < 2:
+        return {"windows": len(wa)}
+    a, r = torch.from_numpy(np.stack(wa)).to(device), torch.from_numpy(np.stack(wr)).to(device)
+    module.eval()
+    with torch.no_grad():
+        ca, _, origin, yaw = canonical_pair(a, r)
+        pm, _ = module.react(*module.encode(ca))
+        gen = to_world(module.decode(pm, window), origin, yaw).cpu().numpy()
+    a, r = a.cpu().numpy(), r.cpu().numpy()
+    pen_gen, pen_true = metrics.proxy_penetration(a, gen), metrics.proxy_penetration(a, r)
+    contacts = metrics.proxy_contact_scores(a, gen, a, r)
+    def safe(fn, *a, **k):  # FD needs more frames than coordinates, diversity more windows than pairs
+        try:
+            return fn(*a, **k)
+        except metrics.MetricInputError:
+            return None
+
+    pairs = min(metrics.DIVERSITY_PAIRS, len(wa) - 1)
+    return {"windows": len(wa), "fd_mm2": safe(metrics.joint_positions_fd, gen, r), "diversity_pairs": pairs,
+            "diversity_mm": safe(metrics.joint_positions_diversity, gen, pairs),
+            "diversity_truth_mm": safe(metrics.joint_positions_diversity, r, pairs),
+            "mpjpe_mm": metrics.mpjpe(gen, r), "translation_mm": metrics.translation_error(gen, r),
+            "penetration_mean_mm": pen_gen["mean_depth_mm"], "penetration_truth_mean_mm": pen_true["mean_depth_mm"],
+            "contact_f1": contacts.get("f1")}  # fmt: skip
+
+
+def _mean_std(values: list[dict]) -> dict:
+    """Nested dicts of numbers -> the same keys with ``{"mean", "std"}`` over the list (sample std)."""
+    out = {}
+    for k, v in values[0].items():
+        if isinstance(v, dict):
+            out[k] = _mean_std([x[k] for x in values])
+        elif isinstance(v, (int, float)) and v is not None:
+            arr = np.array([x[k] for x in values if x.get(k) is not None], dtype=np.float64)
+            out[k] = {"mean": float(arr.mean()), "std": float(arr.std(ddof=1)) if len(arr) > 1 else 0.0}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--export", type=Path, help="a dataset export (e.g. of `dualhuman synth`, >= 500 sequences)")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated, of " + ", ".join(VARIANTS))
+    ap.add_argument("--steps-scale", type=float, default=1.0)
+    ap.add_argument("--batch-size", type=int, default=32)
+    ap.add_argument("--iterations", type=int, default=100, help="refinement steps per window")
+    ap.add_argument("--lambda-prior", type=float, default=0.01)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="config override for every variant")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--quick", action="store_true", help="a tiny export, a tiny model, a few steps, one seed")
+    ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    from dualhuman_builder.export.verify import verify_export
+    from dualhuman_builder.models.reaction_prior.refine import refine_export
+    from dualhuman_builder.models.training import load_run, train
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench-reaction-prior-"))
+    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    export = args.export
+    if args.quick:
+        sys.path.insert(0, str(ROOT))
+        from tests.models.tiny_export import make_tiny_export
+
+        export = make_tiny_export(work, n_sequences=4, frames=80)
+        overrides = {**QUICK, **overrides}
+        args.seeds, args.iterations = 1, 5
+    if export is None:
+        ap.error("--export is required (or --quick)")
+    window = int(overrides.get("window", 64))
+    seqs = _test_sequences(export, "test")
+    variants = [v for v in args.variants.split(",") if v]
+    figures: dict = {"variants": {}, "runs": {}}
+    t0 = time.perf_counter()
+    for name in variants:
+        per_seed = []
+        for seed in range(args.seeds):
+            run = work / f"{name}-s{seed}"
+            t = time.perf_counter()
+            train("reaction-prior", export, run, config_overrides={**overrides, **VARIANTS[name]},
+                  steps_scale=args.steps_scale, batch_size=args.batch_size, seed=seed, device=args.device,
+                  progress=False)  # fmt: skip
+            train_s = time.perf_counter() - t
+            module = load_run(run, device=args.device)[2]
+            summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+            refine = _refinement(module, seqs, module.config, window, args.iterations, args.lambda_prior, args.device)
+            rec = {"refine": refine,
+                   "generation": _generation(module, seqs, window, args.device), "train_s": train_s,
+                   "windows_per_s": summary.get("windows_per_s"),
+                   "loader_share": summary.get("loader_share")}  # fmt: skip
+            figures["runs"][f"{name}-s{seed}"] = rec
+            per_seq = {k: v for k, v in rec.items() if v is not None}
+            per_seed.append(per_seq)
+            print(f"{name} seed {seed}: MPJPE {rec['refine']['before']['mpjpe_mm']:.1f} -> "
+                  f"{rec['refine']['after']['mpjpe_mm']:.1f} mm, trained in {train_s:.0f} s", flush=True)  # fmt: skip
+        figures["variants"][name] = _mean_std(per_seed)
+    if "full" in variants:
+        full_run = work / "full-s0"
+        t = time.perf_counter()
+        summary = refine_export(full_run, export, work / "refined", window=window, lambda_prior=args.lambda_prior,
+                                iterations=args.iterations, device=args.device, progress=False)  # fmt: skip
+        figures["refine_export"] = {"seconds": time.perf_counter() - t, "sequences": summary["sequences"],
+                                    "windows": summary["windows"],
+                                    "verify_problems": len(verify_export(work / "refined"))}  # fmt: skip
+        full = figures["variants"]["full"]["refine"]["after"]["mpjpe_mm"]["mean"]
+        figures["beats"] = {n: float(full < figures["variants"][n]["refine"]["after"]["mpjpe_mm"]["mean"])
+                            for n in variants if n != "full"}  # fmt: skip
+    figures["seconds"] = time.perf_counter() - t0
+    figures["test_sequences"] = len(seqs)
+    goals = [Goal("variants.full.refine.mpjpe_reduction.mean", ">=", 0.25, "", "refinement's MPJPE cut, full model")]
+    goals += [Goal(f"beats.{n}", ">=", 1, "", f"full model refines better than {n}") for n in variants if n != "full"]
+    goals.append(Goal("refine_export.verify_problems", "<=", 0, "", "refined export passes `export verify`"))
+    if args.device.startswith("cuda"):
+        goals.append(Goal("variants.full.loader_share.mean", "<=", 0.10, "", "loader share of a training step (GPU)"))
+    rows = [[n, *(f"variants.{n}.refine.{w}.{k}.mean" for w, k in (("before", "mpjpe_mm"), ("after", "mpjpe_mm"),
+             ("after", "pa_mpjpe_mm"), ("after", "translation_mm")))] for n in variants]  # fmt: skip
+    tables = [Table("Refinement of the corrupted test reactors (mm, mean over seeds)",
+                    ["variant", "MPJPE before", "MPJPE after", "PA-MPJPE after", "translation after"],
+                    rows)]  # fmt: skip
+    notes = ("--quick: tiny export and model; the figures check the script, they measure nothing."
+             if args.quick else "")  # fmt: skip
+    path = write_results("reaction_prior", figures, params={**vars(args), "overrides": overrides}, goals=goals,
+                         tables=tables, notes=notes, out=args.out)  # fmt: skip
+    print(path)
+
+
+if __name__ == "__main__":
+    main()

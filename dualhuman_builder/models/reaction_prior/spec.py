@@ -1,0 +1,264 @@
+"""The reaction prior as a trainable model: :class:`ReactionPrior` (the module) and
+:class:`ReactionPriorSpec` (``dualhuman train reaction-prior``).
+
+Training runs two phases, as the paper does (§3.1, §3.4): ``vae`` trains the motion VAE on both
+people's windows with ``L1 + lambda_dist * KL(q(z|x) || N(0, I))`` (lambda_dist = 1e-4; both terms are
+means over their elements, MLD's convention); ``inn`` trains the generator with the VAE frozen, with
+the prior loss ``KL[q(z_r | x_r) || G(q(z_a | x~_a))]`` where ``x~_a`` is the actor corrupted by the
+visibility-driven noise of :mod:`.noise` and the target is the clean reactor's encoding. An invertible
+generator is also trained in reverse, ``KL[q(z_a | x_a) || G^-1(q(z_r | x~_r))]`` (weight
+``reverse_weight``), since swapping action and reaction keeps the interaction's meaning.
+
+Ablations (the paper's Table 4 rows), all config switches:
+
+- ``use_vae = false``: no motion VAE. The code of a window is fixed, not learned: the first
+  ``dct_coeffs`` coefficients of a DCT along time of each normalised coordinate, with a constant
+  spread (:class:`.vae.DCTCodec`); the generator maps the actor's coefficients to the reactor's and
+  the refinement optimises coefficients. Only the ``inn`` phase runs.
+- ``mapper = "mlp"``: the INN replaced by an MLP of the same width and depth (one direction).
+- ``noise_augment = false``: the generator sees clean inputs in training (actors; reactors in reverse).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import torch
+from torch import nn
+
+from dualhuman_builder.models.base import Phase
+from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
+from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
+from dualhuman_builder.models.reaction_prior.representation import FEATS, Normalizer, canonical_pair, flat, unflat
+from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE
+
+NAME = "reaction-prior"
+
+#: Defaults sized for a CPU. The paper / MLD setting for a GPU: latent_dim 256, layers 9, ff 1024,
+#: vae_steps and inn_steps for 4000 and 500 epochs of the data (paper §3.5).
+DEFAULTS: dict[str, Any] = {
+    "window": 64,
+    "latent_dim": 64,
+    "layers": 2,
+    "heads": 4,
+    "ff": 128,
+    "dropout": 0.1,
+    "lambda_dist": 1e-4,
+    "use_vae": True,
+    "dct_coeffs": 8,
+    "dct_log_std": 0.0,
+    "mapper": "inn",
+    "mapper_blocks": 4,
+    "mapper_hidden": 128,
+    "mapper_clamp": 2.0,
+    "reverse_weight": 1.0,
+    "noise_augment": True,
+    "noise": NoiseModel().as_dict(),
+    "stats_batches": 16,
+    "vae_steps": 2000,
+    "inn_steps": 500,
+    "lr": 1e-4,
+    "weight_decay": 5e-4,
+    "lambda_prior": 0.01,
+    "refine_iterations": 100,
+    "refine_lr": 0.05,
+    "eval_refine_windows": 8,
+    "eval_refine_iterations": 50,
+    "eval_seed": 0,
+}
+
+_LOG_STD_RANGE = (-8.0, 4.0)  # log sigma clamped inside the KL only, so an outlier cannot overflow exp
+
+
+def kl_gauss(mu1: torch.Tensor, logstd1: torch.Tensor, mu2: torch.Tensor, logstd2: torch.Tensor) -> torch.Tensor:
+    """``KL[N(mu1, s1) || N(mu2, s2)]`` of diagonal Gaussians, per element (nats), ``s = exp(logstd)``."""
+    l1, l2 = logstd1.clamp(*_LOG_STD_RANGE), logstd2.clamp(*_LOG_STD_RANGE)
+    return l2 - l1 + (torch.exp(2 * l1) + (mu1 - mu2) ** 2) / (2 * torch.exp(2 * l2)) - 0.5
+
+
+def noise_model(config: dict[str, Any]) -> NoiseModel:
+    n = dict(config.get("noise") or {})
+    if "root_bias_m" in n:
+        n["root_bias_m"] = tuple(float(x) for x in n["root_bias_m"])
+    return NoiseModel(**n)
+
+
+class ReactionPrior(nn.Module):
+    """Normaliser + motion code (VAE or, ablated, DCT) + generator (INN or, ablated, MLP).
+
+    All tensors in normalised units unless named otherwise; windows ``(B, L, 22, 3)`` metres in the
+    actor's window frame (:mod:`.representation`)."""
+
+    def __init__(self, config: dict[str, Any]):
+        super().__init__()
+        c = self.config = {**DEFAULTS, **config}  # losses and evaluate read loss weights and noise from it
+        self.window = int(c["window"])
+        self.norm = Normalizer(FEATS, int(c["stats_batches"]))
+        if c["use_vae"]:
+            self.codec: nn.Module = MotionVAE(FEATS, c["latent_dim"], c["layers"], c["heads"], c["ff"], c["dropout"],
+                                              max_len=max(512, self.window))  # fmt: skip
+        else:
+            self.codec = DCTCodec(FEATS, self.window, c["dct_coeffs"], c["dct_log_std"])
+        dim = 2 * self.codec.latent_dim
+        if c["mapper"] == "inn":
+            self.mapper: nn.Module = CouplingINN(dim, c["mapper_blocks"], c["mapper_hidden"], c["mapper_clamp"])
+        elif c["mapper"] == "mlp":
+            self.mapper = MLPMapper(dim, c["mapper_blocks"], c["mapper_hidden"])
+        else:
+            raise ValueError(f"mapper must be 'inn' or 'mlp', got {c['mapper']!r}")
+
+    @property
+    def latent_dim(self) -> int:
+        return self.codec.latent_dim
+
+    def encode(self, joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Canonical joints ``(B, L, 22, 3)`` metres -> ``(mu, log sigma)`` each ``(B, D)``."""
+        mu, logvar = self.codec.encode(self.norm(flat(joints)))
+        return mu, 0.5 * logvar
+
+    def decode(self, z: torch.Tensor, length: int | None = None) -> torch.Tensor:
+        """Code ``(B, D)`` -> canonical joints ``(B, L, 22, 3)`` metres."""
+        return unflat(self.norm.inverse(self.codec.decode(z, length or self.window)))
+
+    def react(self, mu_a: torch.Tensor, logstd_a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The prior on the reactor's code given the actor's: ``(mu~_r, log sigma~_r)``."""
+        return self.mapper(torch.cat([mu_a, logstd_a], dim=-1)).chunk(2, dim=-1)
+
+    def act(self, mu_r: torch.Tensor, logstd_r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The reverse direction (INN only): the actor's code given the reactor's."""
+        return self.mapper.inverse(torch.cat([mu_r, logstd_r], dim=-1)).chunk(2, dim=-1)
+
+
+def _pair(batch: dict[str, Any]) -> tuple[torch.Tensor, ...]:
+    """``(actor, reactor, origin, yaw)`` of a batch in the actor's window frame (:mod:`.representation`)."""
+    return canonical_pair(batch["joints_actor"].float(), batch["joints_reactor"].float())
+
+
+class ReactionPriorSpec:
+    """:class:`~dualhuman_builder.models.base.ModelSpec` of the reaction prior (see the module docstring)."""
+
+    name = NAME
+    about = ("the Dual-Human paper's reaction prior: a motion VAE and an invertible network from the actor's latent "
+             "distribution to the reactor's, which refines a noisy reactor (`dualhuman refine`)")
+
+    def default_config(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
+
+    def build(self, config: dict[str, Any]) -> nn.Module:
+        return ReactionPrior({**DEFAULTS, **config})
+
+    def phases(self, config: dict[str, Any]) -> list[Phase]:
+        c = {**DEFAULTS, **config}
+        lr, wd = float(c["lr"]), float(c["weight_decay"])
+        out = [Phase("vae", int(c["vae_steps"]), lr, wd)] if c["use_vae"] else []
+        return out + [Phase("inn", int(c["inn_steps"]), lr, wd)]
+
+    def parameters(self, module: nn.Module, phase: str) -> Iterable[nn.Parameter]:
+        if phase == "vae":
+            return list(module.codec.parameters())
+        if phase == "inn":
+            return list(module.mapper.parameters())
+        raise ValueError(f"the reaction prior has phases 'vae' and 'inn', not {phase!r}")
+
+    def losses(self, module: nn.Module, batch: dict[str, Any], phase: str) -> dict[str, torch.Tensor]:
+        ca, cr, _, _ = _pair(batch)
+        both = torch.cat([ca, cr], dim=0)
+        if module.training:
+            module.norm.observe(flat(both))
+        if phase == "vae":
+            x = module.norm(flat(both))
+            mu, logvar = module.codec.encode(x)
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+            x_hat = module.codec.decode(z, x.shape[1])
+            l1 = (x_hat - x).abs().mean()
+            kl = (0.5 * (mu**2 + torch.exp(logvar) - 1.0 - logvar)).mean()
+            return {"loss": l1 + float(module.config["lambda_dist"]) * kl, "l1": l1.detach(), "kl": kl.detach()}
+        if phase != "inn":
+            raise ValueError(f"the reaction prior has phases 'vae' and 'inn', not {phase!r}")
+        cfg = module.config
+        was = module.codec.training
+        module.codec.eval()  # frozen: no dropout, no gradient
+        try:
+            with torch.no_grad():
+                na, nr = ca, cr
+                if module.training and cfg["noise_augment"]:
+                    nm = noise_model(cfg)
+                    na = corrupt(ca, batch["visibility_actor"].to(ca), nm)
+                    nr = corrupt(cr, batch["visibility_reactor"].to(cr), nm)
+                mu_a, ls_a = module.encode(ca)
+                mu_r, ls_r = module.encode(cr)
+                mu_na, ls_na = module.encode(na)
+                mu_nr, ls_nr = module.encode(nr)
+        finally:
+            module.codec.train(was)
+        pm, pl = module.react(mu_na, ls_na)
+        forward = kl_gauss(mu_r, ls_r, pm, pl).mean()
+        out = {"prior_kl": forward.detach()}
+        loss = forward
+        w = float(cfg["reverse_weight"])
+        if module.mapper.invertible and w > 0:
+            qm, ql = module.act(mu_nr, ls_nr)
+            reverse = kl_gauss(mu_a, ls_a, qm, ql).mean()
+            out["reverse_kl"] = reverse.detach()
+            loss = loss + w * reverse
+        out["loss"] = loss
+        return out
+
+    def evaluate(self, module: nn.Module, batches: Iterator[dict[str, Any]], device: torch.device) -> dict[str, float]:
+        from dualhuman_builder.models.reaction_prior.refine import refine_windows
+
+        cfg = module.config
+        sums: dict[str, float] = {}
+        n_win = 0
+        refine_a, refine_r, refine_v = [], [], []
+        for batch in batches:
+            ca, cr, _, _ = _pair({k: (v.to(device) if torch.is_tensor(v) else v) for k, v in batch.items()})
+            B = ca.shape[0]
+            mu_a, ls_a = module.encode(ca)
+            mu_r, ls_r = module.encode(cr)
+            rec_a, rec_r = module.decode(mu_a, ca.shape[1]), module.decode(mu_r, cr.shape[1])
+            pm, pl = module.react(mu_a, ls_a)
+            gen = module.decode(pm, cr.shape[1])
+            figures = {
+                "recon_mpjpe_mm": 0.5 * (_mpjpe(rec_a, ca) + _mpjpe(rec_r, cr)),
+                "generation_mpjpe_mm": _mpjpe(gen, cr),
+                "generation_root_mm": _root(gen, cr),
+                "prior_kl": kl_gauss(mu_r, ls_r, pm, pl).sum(-1),
+            }
+            for k, v in figures.items():
+                sums[k] = sums.get(k, 0.0) + float(v.sum())
+            n_win += B
+            have = sum(len(x) for x in refine_a)
+            if have < int(cfg["eval_refine_windows"]):
+                take = int(cfg["eval_refine_windows"]) - have
+                refine_a.append(batch["joints_actor"][:take].to(device).float())
+                refine_r.append(batch["joints_reactor"][:take].to(device).float())
+                refine_v.append(batch["visibility_reactor"][:take].to(device).float())
+        if not n_win:
+            return {}
+        out = {k: v / n_win for k, v in sums.items()}
+        out["windows"] = float(n_win)
+        if refine_a:
+            a, r, v = torch.cat(refine_a), torch.cat(refine_r), torch.cat(refine_v)
+            g = torch.Generator(device=a.device).manual_seed(int(cfg["eval_seed"]))
+            noisy = corrupt(r, v, noise_model(cfg), generator=g)
+            refined = refine_windows(module, a, noisy, float(cfg["lambda_prior"]), int(cfg["eval_refine_iterations"]),
+                                     float(cfg["refine_lr"]))  # fmt: skip
+            out["refine_windows"] = float(len(a))
+            out["refine_before_mpjpe_mm"] = float(_mpjpe(noisy, r).mean())
+            out["refine_after_mpjpe_mm"] = float(_mpjpe(refined, r).mean())
+            out["refine_before_root_mm"] = float(_root(noisy, r).mean())
+            out["refine_after_root_mm"] = float(_root(refined, r).mean())
+        return out
+
+
+def _mpjpe(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """Per window ``(B,)``: mean joint distance in mm (absolute, in the shared frame: placement counts)."""
+    return (pred - true).norm(dim=-1).mean(dim=(1, 2)) * 1000.0
+
+
+def _root(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """Per window ``(B,)``: mean pelvis distance in mm."""
+    return (pred[:, :, 0] - true[:, :, 0]).norm(dim=-1).mean(dim=1) * 1000.0
+

@@ -1,0 +1,284 @@
+"""The reaction prior: invertibility, training signal, checkpoint reload, refinement, the refined export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dualhuman_builder.models.base import get_model
+from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
+from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
+from dualhuman_builder.models.reaction_prior.refine import blend_weights, refine_sequence, window_starts
+from dualhuman_builder.models.reaction_prior.representation import (canonical_pair, flat, rotate_y, to_canonical,
+                                                                    to_world, window_frame)  # fmt: skip
+
+TINY = {"window": 16, "latent_dim": 16, "layers": 1, "heads": 2, "ff": 32, "dropout": 0.0, "mapper_blocks": 2,
+        "mapper_hidden": 32, "vae_steps": 6, "inn_steps": 4, "stats_batches": 4, "eval_refine_windows": 2,
+        "eval_refine_iterations": 3, "refine_iterations": 3}  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _threads():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _motion(B: int, L: int, seed: int = 0, dx: float = 1.3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Smooth two-person windows ``(B, L, 22, 3)``: a skeleton swaying and drifting, the other facing it
+    ``dx`` metres away and answering with a lag."""
+    g = torch.Generator().manual_seed(seed)
+    rest = torch.randn(22, 3, generator=g) * 0.15 + torch.tensor([0.0, 1.0, 0.0])
+    rest[1], rest[2], rest[16], rest[17] = (torch.tensor([0.1, 0.9, 0.0]), torch.tensor([-0.1, 0.9, 0.0]),
+                                            torch.tensor([0.2, 1.4, 0.0]), torch.tensor([-0.2, 1.4, 0.0]))  # fmt: skip
+    t = torch.linspace(0, 1, L)[None, :, None, None]
+    phase = torch.rand(B, 1, 1, 1, generator=g) * 6.28
+    amp = 0.1 + 0.1 * torch.rand(B, 1, 22, 3, generator=g)
+    a = rest + amp * torch.sin(6.28 * t + phase)
+    a = a + torch.tensor([0.3, 0.0, 0.0]) * t
+    b = rest * torch.tensor([-1.0, 1.0, -1.0]) + torch.tensor([dx, 0.0, 0.0]) + amp * torch.sin(6.28 * t + phase - 0.5)
+    return a, b
+
+
+def _batch(B: int = 8, L: int = 16, seed: int = 0) -> dict:
+    a, b = _motion(B, L, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    return {"joints_actor": a, "joints_reactor": b, "visibility_actor": torch.rand(B, L, 22, generator=g),
+            "visibility_reactor": torch.rand(B, L, 22, generator=g)}  # fmt: skip
+
+
+def _scramble(net: torch.nn.Module, seed: int = 0) -> None:
+    """Random weights everywhere (a fresh INN is the identity: its last layers start at zero)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.1)
+
+
+def test_inn_inverts_to_float_precision_both_directions():
+    inn = CouplingINN(24, blocks=4, hidden=32)
+    _scramble(inn)
+    x = torch.randn(64, 24, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(CouplingINN(24, blocks=2, hidden=8)(x), x)  # a fresh network is the identity
+    y = inn(x)
+    assert (y - x).abs().max() > 0.5  # it does something
+    assert torch.allclose(inn.inverse(y), x, atol=1e-5, rtol=0)
+    assert torch.allclose(inn(inn.inverse(x)), x, atol=1e-5, rtol=0)
+    inn64 = inn.double()
+    assert torch.allclose(inn64.inverse(inn64(x.double())), x.double(), atol=1e-12, rtol=0)
+    with pytest.raises(NotImplementedError):
+        MLPMapper(24).inverse(x)
+    with pytest.raises(ValueError):
+        CouplingINN(7)
+
+
+@settings(max_examples=30, deadline=None)
+@given(half=st.integers(1, 12), blocks=st.integers(1, 4), seed=st.integers(0, 2**16), scale=st.floats(0.0, 0.15))
+def test_inn_inverts_for_any_size_and_weights(half, blocks, seed, scale):
+    inn = CouplingINN(2 * half, blocks=blocks, hidden=8, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in inn.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * scale)
+    x = torch.randn(5, 2 * half, generator=g, dtype=torch.float64) * 3
+    inn = inn.double()
+    assert torch.allclose(inn.inverse(inn(x)), x, atol=1e-9, rtol=0)
+    assert torch.allclose(inn(inn.inverse(x)), x, atol=1e-9, rtol=0)
+
+
+def test_losses_run_under_bf16_autocast():
+    """The shared loop trains under bf16 autocast on a GPU; the same mixed dtypes on the CPU."""
+    spec = get_model("reaction-prior")
+    module = spec.build({**spec.default_config(), **TINY})
+    module.train()
+    for phase in ("vae", "inn"):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            loss = spec.losses(module, _batch(B=2), phase)["loss"]
+        loss.float().backward()
+        assert torch.isfinite(loss)
+
+
+def test_window_frame_puts_actor_at_origin_facing_plus_z():
+    a, b = _motion(3, 8, seed=2)
+    yaw = torch.tensor([0.3, -2.0, 1.0])
+    a, b = rotate_y(a, yaw) + torch.tensor([2.0, 0.0, -1.0]), rotate_y(b, yaw) + torch.tensor([2.0, 0.0, -1.0])
+    ca, cb, origin, w = canonical_pair(a, b)
+    assert torch.allclose(ca[:, 0, 0, [0, 2]], torch.zeros(3, 2), atol=1e-5)
+    assert torch.allclose(window_frame(ca)[1], torch.zeros(3), atol=1e-5)
+    assert torch.allclose(ca[..., 1], a[..., 1], atol=1e-6)  # heights kept
+    gap = lambda x, y: (x[:, :, 0] - y[:, :, 0]).norm(dim=-1)
+    assert torch.allclose(gap(ca, cb), gap(a, b), atol=1e-5)  # one frame for both people
+    assert torch.allclose(to_world(to_canonical(b, origin, w), origin, w), b, atol=1e-5)
+
+
+def test_noise_is_larger_where_joints_are_hidden_and_seeded():
+    j = torch.zeros(4, 200, 22, 3)
+    vis = torch.ones(4, 200, 22)
+    vis[..., 11:] = 0.0
+    m = NoiseModel(root_bias_m=(0.0, 0.0, 0.0))
+    n1 = corrupt(j, vis, m, generator=torch.Generator().manual_seed(3))
+    n2 = corrupt(j, vis, m, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(n1, n2)
+    seen, hidden = n1[..., :11, :].std(), n1[..., 11:, :].std()
+    assert 0.015 < seen < 0.04 and hidden > 2.5 * seen
+    bias = corrupt(j, torch.ones(4, 200, 22), NoiseModel(visible_m=0.0, occluded_m=0.0, jitter_m=0.0),
+                   generator=torch.Generator().manual_seed(4))  # fmt: skip
+    assert torch.allclose(bias, bias[:, :1, :1].expand_as(bias))  # one offset of the whole body per item
+
+
+def test_windows_cover_every_frame_and_blend_without_seams():
+    for T, L in [(64, 64), (100, 64), (200, 64), (10, 64), (33, 16)]:
+        starts = window_starts(T, L)
+        covered = np.zeros(max(T, L), int)
+        for s in starts:
+            covered[s : s + L] += 1
+        assert covered[:T].min() >= 1 and starts[-1] + L >= T
+    w = blend_weights(8)
+    assert w.tolist() == [1, 2, 3, 4, 4, 3, 2, 1]
+
+
+def _train(spec, module, phase: str, batch: dict, steps: int, lr: float = 3e-3) -> list[float]:
+    opt = torch.optim.AdamW(list(spec.parameters(module, phase)), lr=lr)
+    module.train()
+    out = []
+    for _ in range(steps):
+        loss = spec.losses(module, batch, phase)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        out.append(float(loss.detach()))
+    return out
+
+
+@pytest.mark.parametrize("overrides", [{}, {"mapper": "mlp"}, {"use_vae": False, "noise_augment": False}])
+def test_losses_fall_on_constructed_windows(overrides):
+    torch.manual_seed(0)
+    spec = get_model("reaction-prior")
+    cfg = {**spec.default_config(), **TINY, **overrides}
+    module = spec.build(cfg)
+    names = [p.name for p in spec.phases(cfg)]
+    assert names == (["vae", "inn"] if cfg["use_vae"] else ["inn"])
+    batch = _batch()
+    for phase in names:
+        frozen = {n: p.detach().clone() for n, p in module.named_parameters()}
+        mine = {id(p) for p in spec.parameters(module, phase)}
+        losses = _train(spec, module, phase, batch, 25 if phase == "vae" else 15)
+        assert np.isfinite(losses).all() and np.mean(losses[-3:]) < 0.8 * losses[0], (phase, losses)
+        for n, p in module.named_parameters():  # the other phase's parameters stay as they were
+            if id(p) not in mine:
+                assert torch.equal(p, frozen[n]), n
+    assert int(module.norm.ready) == min(cfg["stats_batches"], 40)
+    assert module.norm.std.min() >= 0.01
+
+
+def test_refinement_lowers_the_error_on_a_noisy_case():
+    """A code that keeps slow motion (the no-VAE ablation's DCT) and white noise on a smooth reactor:
+    the windowed, blended optimisation must come out closer to the truth than the noisy input."""
+    torch.manual_seed(0)
+    spec = get_model("reaction-prior")
+    cfg = {**spec.default_config(), **TINY, "use_vae": False, "dct_coeffs": 4}
+    module = spec.build(cfg)
+    a, b = _motion(1, 40, seed=5)
+    module.norm.observe(flat(torch.cat(canonical_pair(a, b)[:2])))
+    noisy = b[0] + torch.randn(40, 22, 3, generator=torch.Generator().manual_seed(6)) * 0.03
+    refined, n = refine_sequence(module, a[0].numpy(), noisy.numpy(), window=16, iterations=60, lr=0.05)
+    assert n == len(window_starts(40, 16)) == 4
+    before = (noisy - b[0]).norm(dim=-1).mean()
+    after = torch.from_numpy(refined).sub(b[0]).norm(dim=-1).mean()
+    assert after < 0.7 * before, (float(before), float(after))
+    assert refined.shape == (40, 22, 3) and refined.dtype == np.float32
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny reaction prior trained by the shared loop on the tiny export: ``(export, run)``."""
+    from dualhuman_builder.models.training import train
+    from tests.models.tiny_export import make_tiny_export
+
+    root = tmp_path_factory.mktemp("prior")
+    export = make_tiny_export(root, n_sequences=4, frames=40)
+    torch.set_num_threads(1)
+    run = train("reaction-prior", export, root / "run", config_overrides=TINY, batch_size=4, seed=0, progress=False)
+    return export, run
+
+
+def test_training_on_the_tiny_export_lowers_the_loss_and_reloads_identically(tiny_run):
+    from dualhuman_builder.models.runs import read_metrics
+    from dualhuman_builder.models.training import load_run
+
+    run = tiny_run[1]
+    records = read_metrics(run)
+    assert [r["phase"] for r in records] == ["vae"] * TINY["vae_steps"] + ["inn"] * TINY["inn_steps"]
+    vae = [r["loss"] for r in records if r["phase"] == "vae"]
+    assert np.mean(vae[-2:]) < vae[0]
+    m1 = load_run(run)[2]
+    _, _, m2 = load_run(run)
+    assert int(m1.norm.ready) == TINY["stats_batches"] and not torch.equal(m1.norm.std, torch.ones(66))
+    for (k, a), (_, b) in zip(m1.state_dict().items(), m2.state_dict().items()):
+        assert torch.equal(a, b), k
+    batch = _batch(B=3, L=16, seed=9)
+    ca = canonical_pair(batch["joints_actor"], batch["joints_reactor"])[0]
+    with torch.no_grad():
+        out1 = m1.decode(m1.react(*m1.encode(ca))[0])
+        out2 = m2.decode(m2.react(*m2.encode(ca))[0])
+    assert torch.equal(out1, out2)
+    with torch.no_grad():
+        figures = get_model("reaction-prior").evaluate(m1, iter([batch]), torch.device("cpu"))
+    assert figures["windows"] == 3 and np.isfinite(list(figures.values())).all()
+    assert figures["refine_before_mpjpe_mm"] > 0 and "recon_mpjpe_mm" in figures
+    from dualhuman_builder.models.training import evaluate
+
+    result = evaluate(run, tiny_run[0], "test", batch_size=8)
+    assert result["windows"] >= 1 and result["figures"]["recon_mpjpe_mm"] > 0
+
+
+def test_refine_export_writes_an_export_that_verifies(tiny_run, tmp_path):
+    from dualhuman_builder.export.files import load_motion, read_manifest
+    from dualhuman_builder.export.verify import verify_export
+    from dualhuman_builder.models.reaction_prior.refine import refine_export
+
+    export, run = tiny_run
+    out = tmp_path / "refined"
+    lines = []
+    summary = refine_export(run, export, out, window=16, iterations=2, say=lines.append)
+    assert verify_export(out) == []
+    assert summary["sequences"] == 4 and len(lines) == 5 and summary["windows"] >= 4
+    src, dst = read_manifest(export), read_manifest(out)
+    assert {s: i["split"] for s, i in src["sequences"].items()} == {s: i["split"] for s, i in dst["sequences"].items()}
+    assert dst["refinement"]["noise"] is not None and "reactor pose and shape of the input (not refined)" in \
+        dst["refinement"]["carried_over"]
+    sid = "tiny01"  # person b acts: person a is the reactor
+    m_in = load_motion(export / "sequences" / sid / "motion.npz")
+    m_out = load_motion(out / "sequences" / sid / "motion.npz")
+    assert summary["per_sequence"][sid]["reactor"] == "a"
+    for k in ("pose", "transl", "shape", "joints", "features"):
+        assert np.array_equal(m_in[f"b.{k}"], m_out[f"b.{k}"]), k  # the actor is carried over
+    assert np.array_equal(m_in["a.pose"], m_out["a.pose"]) and np.array_equal(m_in["a.shape"], m_out["a.shape"])
+    assert not np.allclose(m_in["a.joints"], m_out["a.joints"])
+    moved = m_out["a.joints"][:, 0] - m_in["a.joints"][:, 0]
+    assert np.allclose(m_out["a.transl"] - m_in["a.transl"], moved, atol=1e-5)
+    # the same noisy input given as an export: refining it again gives the same joints
+    again = refine_export(run, export, tmp_path / "again", window=16, iterations=2, noisy_from=export, progress=False)
+    assert again["before"]["joint_error_mm"] == 0.0 and "the reactor of" in again["noisy_reactor"]
+    assert verify_export(tmp_path / "again") == []
+
+
+def test_refine_export_refuses_what_it_cannot_refine(tiny_run, tmp_path):
+    import shutil
+
+    from dualhuman_builder.errors import DualhumanError
+    from dualhuman_builder.models.reaction_prior.refine import refine_export
+
+    export, run = tiny_run
+    with pytest.raises(DualhumanError, match="into itself"):
+        refine_export(run, export, export, progress=False)
+    other = tmp_path / "other"
+    shutil.copytree(export, other)
+    manifest = (other / "manifest.json").read_text().replace('"tiny00"', '"tinyXX"')
+    (other / "manifest.json").write_text(manifest)
+    with pytest.raises(DualhumanError, match="no sequence 'tiny00'"):
+        refine_export(run, export, tmp_path / "out", window=16, iterations=1, noisy_from=other, progress=False)
