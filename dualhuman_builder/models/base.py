@@ -70,6 +70,12 @@ class ModelSpec(Protocol):
         """Figures on held-out batches (module in eval mode, no grad), logged and written by ``evaluate``."""
 
 
+#: Optional on a spec: ``make_dataset(export_dir, split, config, seed)`` returns the dataset the loop
+#: draws batches from (``__len__``, ``batch(indices) -> dict``, ``set_epoch(epoch)``), for a model that
+#: reads something else than windows of motion (the pose estimator reads images). Without it the loop
+#: uses :class:`~dualhuman_builder.models.data.InteractionWindows`.
+DATASET_HOOK = "make_dataset"
+
 _REGISTRY: dict[str, Callable[[], ModelSpec]] = {}
 
 
@@ -95,7 +101,7 @@ def _load_builtin() -> None:
     """Import the bundled models, which register themselves (kept lazy: torch models load on demand)."""
     import importlib
 
-    for module in ("dualhuman_builder.models.reaction_prior",):
+    for module in ("dualhuman_builder.models.reaction_prior", "dualhuman_builder.models.pose_estimator"):
         try:
             importlib.import_module(module)
         except ModuleNotFoundError as e:  # a bundled model not present in this checkout

@@ -272,7 +272,12 @@ def _data_options(config: dict[str, Any]) -> dict[str, Any]:
     return {k: config.get(k, v) for k, v in DATA_DEFAULTS.items()}
 
 
-def _dataset(export_dir: Path, split: str, config: dict[str, Any], seed: int) -> InteractionWindows:
+def _dataset(export_dir: Path, split: str, config: dict[str, Any], seed: int, spec: ModelSpec | None = None):
+    """The spec's own dataset (:meth:`~dualhuman_builder.models.base.ModelSpec.make_dataset`, e.g. images),
+    else windows of motion (:class:`InteractionWindows`)."""
+    make = getattr(spec, "make_dataset", None)
+    if make is not None:
+        return make(export_dir, split, config, seed)
     o = _data_options(config)
     return InteractionWindows(export_dir, split, window=int(o["window"]), stride=o["stride"], visibility=bool(o["visibility"]),
                               seed=seed, cameras=int(o["cameras"]))  # fmt: skip
@@ -324,7 +329,7 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         "export": {"path": str(export_dir.resolve()), "manifest_sha256": digest},
     }
     start = _open_run(run_dir, doc, resume)
-    data = _dataset(export_dir, "train", config, seed)
+    data = _dataset(export_dir, "train", config, seed, spec)
     from dualhuman_builder import __version__
 
     doc.update(toolkit_version=__version__, torch_version=torch.__version__, device=str(dev), amp=amp,
@@ -510,7 +515,7 @@ def evaluate(run_dir: str | Path, export_dir: str | Path, split: str = "test", *
     run_dir, export_dir = Path(run_dir), Path(export_dir)
     spec, config, module = load_run(run_dir, device)
     dev = resolve_device(device)
-    data = _dataset(export_dir, split, config, seed)
+    data = _dataset(export_dir, split, config, seed, spec)
     _seed_all(int(seed))
     t0 = time.perf_counter()
     with torch.no_grad():
