@@ -13,12 +13,18 @@ everything up to date and does nothing:
 4. the handshake's labels from its scene, as an annotation;
 5. ``sync`` (tracker mounts and lags carried from ``CALIB``), ``fuse`` and ``fit`` of ``DEMO``;
 6. ``contacts``, ``render`` (:data:`DEMO_RENDER`) and ``sheet``;
-7. the dataset exported to ``WS/export/`` and verified (the calibration take has no fit and is
-   left out).
+7. the quality gates checked on ``DEMO`` (flags stored in the catalog);
+8. the dataset exported to ``WS/export/`` and verified (the calibration take has no fit and is
+   left out; the demo exports ``DEMO`` even when a gate flags it, and says so);
+9. the reaction prior trained briefly on the export (:data:`DEMO_TRAIN`, run folder
+   ``WS/models/reaction-prior``), and the export's reactor refined with it into ``WS/refined/``
+   (verified): the models run end to end, not to a useful accuracy;
+10. the review page ``WS/review.html`` of the workspace's takes.
 """
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +45,11 @@ CALIB_SCENE = {"type": "calibration", "seed": DEMO_SCENE["seed"], "fps": DEMO_SC
 DEMO_CAPTURE_SPEED = 1.0
 #: The demo's render: four views of every 10th frame, small and quick on a CPU.
 DEMO_RENDER = {"views": 4, "size": 192, "spp": 8, "every": 10}
+#: The demo's training: the reaction prior's CPU-sized model for a few steps per phase (a few seconds),
+#: on every window of the one exported sequence.
+DEMO_TRAIN = {"model": "reaction-prior", "steps_scale": 0.01, "batch_size": 4, "seed": 0}
+DEMO_RUN_DIR = "models/reaction-prior"
+DEMO_REFINED_DIR = "refined"
 
 
 @dataclass
@@ -84,7 +95,10 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         _note(result, log, "contacts", run_contacts(ws, DEMO_TAKE, log=log))
         _note(result, log, "render", run_render(ws, DEMO_TAKE, log=log, **DEMO_RENDER))
         _note(result, log, "sheet", run_sheet(ws, DEMO_TAKE, log=log))
+        _gates(ws, result, log)
         _export(ws, result, log)
+        _train_and_refine(ws, result, log)
+        _review(ws, result, log)
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -109,7 +123,7 @@ def _export(ws, result: DemoResult, log) -> None:
     export_dir = ws.root / "export"
     manifest = export_dir / "manifest.json"
     before = manifest.read_bytes() if manifest.exists() else None
-    run_export(ws, export_dir, log=log)
+    run_export(ws, export_dir, log=log, include_flagged=True)
     problems = verify_export(export_dir)
     if problems:
         raise DualhumanError(f"the demo's export does not verify: {problems[:5]}")
@@ -117,6 +131,68 @@ def _export(ws, result: DemoResult, log) -> None:
     (result.ran if changed else result.up_to_date).append("export")
     log(f"export: {export_dir} ({'written' if changed else 'up to date'}; verified)")
     result.outputs["export"] = export_dir
+
+
+def _gates(ws, result: DemoResult, log) -> None:
+    """Check ``DEMO`` against the quality gates (again only when a stage ran since the last check)."""
+    from dualhuman_builder.quality.gates import check_take, evaluate_take, stored_flags
+
+    before = stored_flags(ws, DEMO_TAKE).get(DEMO_TAKE)
+    flags, check = evaluate_take(ws, DEMO_TAKE)
+    if before is not None and before.get("stages") == check["stages"]:
+        result.up_to_date.append("gates")
+        flags_now = before.get("flags", [])
+    else:
+        flags_now = [f.as_dict() for f in check_take(ws, DEMO_TAKE)]
+        result.ran.append("gates")
+    log(f"quality gates: {DEMO_TAKE} " + ("clean" if not flags_now else
+        f"{len(flags_now)} flag(s): " + "; ".join(f["message"] for f in flags_now)))  # fmt: skip
+
+
+def _review(ws, result: DemoResult, log) -> None:
+    """Write the review page when its content changed (it reads the catalog: written last)."""
+    from dualhuman_builder.quality.review import REVIEW_NAME, render_page
+
+    page_path = ws.root / REVIEW_NAME
+    page = render_page(ws, page_path.parent).encode("utf-8")
+    undated = re.compile(rb", written \S+ by ")  # the page says when it was written: not a change
+    if page_path.is_file() and undated.sub(b"", page_path.read_bytes()) == undated.sub(b"", page):
+        result.up_to_date.append("review")
+    else:
+        from dualhuman_builder.fileio import atomic_open
+
+        with atomic_open(page_path, "wb") as f:
+            f.write(page)
+        result.ran.append("review")
+    log(f"review page: {page_path}")
+    result.outputs["review.html"] = page_path
+
+
+def _train_and_refine(ws, result: DemoResult, log) -> None:
+    """Train the reaction prior briefly on the demo's export and refine the export's reactor with it."""
+    from dualhuman_builder.export.verify import verify_export
+    from dualhuman_builder.models.reaction_prior.refine import refine_export
+    from dualhuman_builder.models.training import train
+
+    run_dir, export_dir, refined = ws.root / DEMO_RUN_DIR, ws.root / "export", ws.root / DEMO_REFINED_DIR
+    summary = run_dir / "summary.json"
+    before = summary.read_bytes() if summary.is_file() else None
+    o = DEMO_TRAIN
+    train(o["model"], export_dir, run_dir, steps_scale=o["steps_scale"], batch_size=o["batch_size"], seed=o["seed"],
+          progress=lambda rec: None)  # fmt: skip
+    (result.up_to_date if before == summary.read_bytes() else result.ran).append("train")
+    log(f"train: {o['model']} -> {run_dir}")
+    manifest = refined / "manifest.json"
+    before = manifest.read_bytes() if manifest.is_file() else None
+    refine_export(run_dir, export_dir, refined, progress=False)
+    problems = verify_export(refined)
+    if problems:
+        from dualhuman_builder.errors import DualhumanError
+
+        raise DualhumanError(f"the demo's refined export does not verify: {problems[:5]}")
+    (result.up_to_date if before == manifest.read_bytes() else result.ran).append("refine")
+    log(f"refine: the reactor refined with the prior -> {refined} (verified)")
+    result.outputs.update({"run": run_dir, "refined": refined})
 
 
 def _note(result: DemoResult, log, stage: str, res, prefix: str = "") -> None:

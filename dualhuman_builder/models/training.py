@@ -329,6 +329,10 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         "export": {"path": str(export_dir.resolve()), "manifest_sha256": digest},
     }
     start = _open_run(run_dir, doc, resume)
+    if start is not None and start >= sum(p.steps for p in phases) and (run_dir / runs.SUMMARY).is_file():
+        with _Display(progress) as show:
+            show.say(f"{run_dir} is complete already ({start} steps)")
+        return run_dir  # nothing to do: the run folder stays as it is, byte for byte
     data = _dataset(export_dir, "train", config, seed, spec)
     from dualhuman_builder import __version__
 
@@ -425,8 +429,6 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         finally:
             if writer is not None:
                 writer.close()
-    if start is not None and global_step == start and status == "complete":
-        show.say(f"{run_dir} is complete already ({total} steps)")
     _finish(run_dir, doc, total, global_step, t_run, status, phases)
     if status == "interrupted":
         raise KeyboardInterrupt(f"training interrupted at step {global_step}; checkpoint written to {run_dir}")

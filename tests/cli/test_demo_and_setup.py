@@ -32,7 +32,7 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     logs = []
     first = run_demo(ws_path, log=logs.append)
     stages = ["scene", "devices", "capture", "scene (CALIB)", "devices (CALIB)", "capture (CALIB)", "fit", "contacts",
-              "render", "sheet", "export"]  # fmt: skip
+              "render", "sheet", "gates", "export", "train", "refine", "review"]  # fmt: skip
     assert first.ran == stages and first.up_to_date == []
     out = first.outputs
     assert set(out) >= {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
@@ -114,7 +114,22 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     text = json.loads((out["export"] / "sequences" / "DEMO" / "text.json").read_text())  # pre-labelled by the scene
     assert text["labels"] == ["handshake"] and text["symmetric"] is True and sum(text["multi_hot"]) == 1
     assert text["texts"] and text["annotations"][0]["annotator"] == "dualhuman-scene"
+    # the quality gates ran and the review page lists the take; the models ran end to end
+    page = out["review.html"].read_text()
+    assert "DEMO" in page and "<table" in page
+    with Workspace.open(ws_path) as ws:
+        from dualhuman_builder.quality.gates import stored_flags
+
+        assert "render_completeness" in stored_flags(ws, DEMO_TAKE)[DEMO_TAKE]["evaluated"]
+    summary = json.loads((out["run"] / "summary.json").read_text())
+    assert summary["status"] == "complete" and summary["global_step"] == summary["total_steps"] > 0
+    assert verify_export(out["refined"]) == []
+    refined = json.loads((out["refined"] / "manifest.json").read_text())
+    assert refined["refinement"] and list(refined["sequences"]) == ["DEMO"]
     mtimes = {p: p.stat().st_mtime_ns for p in out.values() if p.is_file()}
+    mtimes.update({p: p.stat().st_mtime_ns for d in ("run", "refined") for p in out[d].rglob("*") if p.is_file()})
     second = run_demo(ws_path, log=logs.append)
     assert second.ran == [] and second.up_to_date == stages
-    assert {p: p.stat().st_mtime_ns for p in second.outputs.values() if p.is_file()} == mtimes  # nothing rewritten
+    again = {p: p.stat().st_mtime_ns for p in second.outputs.values() if p.is_file()}
+    again.update({p: p.stat().st_mtime_ns for d in ("run", "refined") for p in second.outputs[d].rglob("*") if p.is_file()})
+    assert again == mtimes  # nothing rewritten
