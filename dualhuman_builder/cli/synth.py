@@ -54,10 +54,18 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
               help="With --path full --export: export takes the quality gates flagged too.")
 @click.option("--speed", type=float, default=1.0, show_default=True,
               help="The simulated devices play this many times faster than real time while recorded (full path).")
+@click.option("--render", is_flag=True,
+              help="With --path ground-truth: render each scene from a ring of cameras (RGB, depth, masks, "
+                   "keypoints) into the export, as a fitted take's renders, with the image models' targets.")
+@click.option("--render-size", type=int, default=128, show_default=True, help="With --render: image side in pixels.")
+@click.option("--render-views", type=int, default=4, show_default=True, help="With --render: cameras on the ring.")
+@click.option("--render-every", type=int, default=5, show_default=True, help="With --render: render every N-th frame.")
+@click.option("--render-spp", type=int, default=4, show_default=True, help="With --render: samples per pixel.")
 @click.option("--plan-only", is_flag=True, help="Print the plan's summary and write WS/synth.json; make nothing.")
 def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float, long_share: float,
           long_duration: float, takes_per_day: int, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
-          export_dir: Path | None, include_flagged: bool, speed: float, plan_only: bool):  # fmt: skip
+          export_dir: Path | None, include_flagged: bool, speed: float, render: bool, render_size: int,
+          render_views: int, render_every: int, render_spp: int, plan_only: bool):  # fmt: skip
     """Generate a varied synthetic dataset of TAKES simulated takes into WORKSPACE (created if missing).
 
     The plan (WORKSPACE/synth.json) is drawn from the seed: an actor pool over statures, genders
@@ -73,6 +81,7 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
       dualhuman run WS
       dualhuman synth WS --takes 24 --seed 1 --hold-out-actors 2 --export OUT
       dualhuman synth GT --takes 200 --path ground-truth --export OUT
+      dualhuman synth GT --takes 200 --path ground-truth --export OUT --render
     """
     from rich.markup import escape
 
@@ -80,10 +89,17 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
 
     options = SynthOptions(takes=takes, seed=seed, types=types or SYNTH_TYPES, preset=preset, fps=fps,
                            long_share=long_share, long_duration=long_duration, takes_per_day=takes_per_day, actors=pool,
-                           hold_out_actors=hold_out_actors, hold_out_types=hold_out_types or (), speed=speed)  # fmt: skip
+                           hold_out_actors=hold_out_actors, hold_out_types=hold_out_types or (), speed=speed,
+                           render=render, render_size=render_size, render_views=render_views, render_every=render_every,
+                           render_spp=render_spp)  # fmt: skip
     plan = plan_synthetic(options)
     for line in describe_plan(plan):
         console.print(escape(line), highlight=False)
+    settings = options.render_settings()
+    if settings is not None:
+        console.print(f"renders: {settings['views']} views of {settings['size']} px, every {settings['every']} frame(s), "
+                      f"{settings['spp']} spp, ring {settings['radius_m']:g} m, {settings['height_m']:g} m high, "
+                      f"{settings['fov_deg']:g} deg", highlight=False)  # fmt: skip
     if plan_only:
         from dualhuman_builder.sim.synth import record_plan
         from dualhuman_builder.workspace import Workspace

@@ -1,6 +1,6 @@
 """``schema.json``: the machine-readable description of every array in an export.
 
-Each array of ``motion.npz``, ``contacts.npz`` and a render's ``keypoints.npz`` with its file,
+Each array of ``motion.npz``, ``contacts.npz`` and a render's ``keypoints.npz`` and ``targets.npz`` with its file,
 shape in symbolic dimensions, dtype, units and meaning, plus the JSON files' fields; the 269
 motion-feature slices come from :data:`~dualhuman_builder.export.features.FEATURE_SCHEMA`.
 """
@@ -24,6 +24,7 @@ def build_schema(body_model: Mapping[str, Any]) -> dict[str, Any]:
     motion = "sequences/{seq_id}/motion.npz"
     contacts = "sequences/{seq_id}/contacts.npz"
     keypoints = "sequences/{seq_id}/renders/keypoints.npz"
+    targets = "sequences/{seq_id}/renders/targets.npz"
     arrays = []
     for p, who in zip(PERSONS, ("actor 0", "actor 1")):
         arrays += [
@@ -61,6 +62,24 @@ def build_schema(body_model: Mapping[str, Any]) -> dict[str, Any]:
          "meaning": "the sequence frame index of each rendered frame", "stage": "keypoints"},
         {"file": keypoints, "name": "views", "shape": ["C"], "dtype": "str", "units": "",
          "meaning": "camera names (views/<name>/ and cameras.json)", "stage": "keypoints"},
+        {"file": targets, "name": "joints_cam", "shape": ["C", "R", 2, 22, 3], "dtype": "float32", "units": "m",
+         "meaning": "per camera, rendered frame and actor: the 22 joints of motion.npz in the camera's frame "
+                    "(R x + t of cameras.json; +X right, +Y down, +Z forward); K of each gives keypoints.npz's u, v",
+         "stage": "targets"},
+        {"file": targets, "name": "transl", "shape": ["C", "R", 2, 3], "dtype": "float32", "units": "1, 1, m",
+         "meaning": "the root's translation target over the full image: (2 u / W - 1, 2 v / H - 1, z W / fx), "
+                    "(u, v) the pelvis pixel, z its camera depth, W the image width (z W / fx = z 2 tan(fov_x / 2)); "
+                    "u, v = 0 behind the camera", "stage": "targets"},
+        {"file": targets, "name": "prob", "shape": ["C", "R", 2], "dtype": "float32", "units": "1",
+         "meaning": "saliency target: share of the actor's 22 joints visible (keypoints.npz's visible flags)",
+         "stage": "targets"},
+        {"file": targets, "name": "box", "shape": ["C", "R", 2, 4], "dtype": "float32", "units": "px",
+         "meaning": "the actor's box in the instance mask: x0, y0, x1, y1 pixel edges (columns x0 .. x1 - 1); "
+                    "zeros where the actor covers no pixel", "stage": "targets"},
+        {"file": targets, "name": "frames", "shape": ["R"], "dtype": "int64", "units": "frame",
+         "meaning": "the sequence frame index of each rendered frame (as keypoints.npz)", "stage": "targets"},
+        {"file": targets, "name": "views", "shape": ["C"], "dtype": "str", "units": "",
+         "meaning": "camera names, in keypoints.npz's order", "stage": "targets"},
     ]  # fmt: skip
     return {
         "format": FORMAT,

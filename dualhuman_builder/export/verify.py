@@ -5,8 +5,9 @@
 is a regular file inside the export with its size and SHA-256; nothing else sits at the top level
 or in the export's own folders; every array matches ``schema.json`` (names, shapes with the symbolic
 dims resolved per sequence, dtypes); motion arrays hold no NaN/inf and the stored features are those
-of the stored joints; contacts are consistent (vertex count, per-frame flags); the JSON files parse
-(text as UTF-8); labels are in ``labels.json`` and each multi-hot vector matches its labels; the
+of the stored joints; contacts are consistent (vertex count, per-frame flags); a render's image
+targets (``renders/targets.npz``) are finite and agree with its keypoints and cameras (the joints
+projected within 0.5 px); the JSON files parse (text as UTF-8); labels are in ``labels.json`` and each multi-hot vector matches its labels; the
 splits are disjoint, cover every sequence and agree with the manifest (and share no subject when the
 export says subject-disjoint); the feature statistics are finite; each sequence has every file the
 manifest promises.
@@ -73,7 +74,9 @@ MAX_SCHEMA_ARRAYS = 4096
 MAX_NAMED = 20
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 #: Members of a sequence's files whose values verify inspects (the others: header only).
-_INSPECTED = {"contacts.npz": {"labels_packed", "num_vertices", "frame_contact"}}
+_INSPECTED = {"contacts.npz": {"labels_packed", "num_vertices", "frame_contact"},
+              "targets.npz": {"joints_cam", "transl", "prob", "box", "frames", "views"},
+              "keypoints.npz": {"joints", "frames", "views"}}  # fmt: skip
 
 
 def _q(text: Any) -> str:
@@ -627,7 +630,8 @@ def _verify_sequence(ex: _Export, sid: str, info: dict[str, Any], entries: list,
     if not _is_int(T) or T < 2:
         return [f"{base}: manifest gives {_kind(T)} frames"]
     promised = {"motion": ["motion.npz"], "contacts": ["contacts.npz", "contact_events.json"], "text": ["text.json"],
-                "cameras": ["cameras.json"], "keypoints": ["renders/keypoints.npz"]}  # fmt: skip
+                "cameras": ["cameras.json"], "keypoints": ["renders/keypoints.npz"],
+                "targets": ["renders/targets.npz", "renders/keypoints.npz", "cameras.json"]}  # fmt: skip
     needed = [SEQUENCE_JSON, "text.json"] + [f for stage, fs in promised.items() if has.get(stage) for f in fs]
     views = info.get("render_views", [])
     for view in views:
@@ -702,6 +706,10 @@ def _verify_sequence(ex: _Export, sid: str, info: dict[str, Any], entries: list,
                 failed.add((rel, name))
         motion = values(f"{base}/motion.npz", None)  # every float array: no NaN/inf
         contacts = values(f"{base}/contacts.npz", _INSPECTED["contacts.npz"]) if has.get("contacts") else {}
+        targets = keypoints = {}
+        if has.get("targets"):
+            targets = values(f"{base}/renders/targets.npz", _INSPECTED["targets.npz"])
+            keypoints = values(f"{base}/renders/keypoints.npz", _INSPECTED["keypoints.npz"])
     finally:
         for item in opened.values():
             if item:
@@ -772,9 +780,63 @@ def _verify_sequence(ex: _Export, sid: str, info: dict[str, Any], entries: list,
                 problems.append(f"{base}/cameras.json: no cameras")
             elif missing:
                 problems.append(f"{base}: rendered views {[_q(v) for v in missing]} have no camera in cameras.json")
+    if has.get("targets") and f"{base}/cameras.json" in files:
+        problems += _check_targets(base, targets, keypoints, ex.json(f"{base}/cameras.json"))
     seq_doc = ex.json(f"{base}/{SEQUENCE_JSON}")
     if isinstance(seq_doc, dict) and seq_doc.get("frames") != T:
         problems.append(f"{base}/{SEQUENCE_JSON}: {_kind(seq_doc.get('frames'))} frames, manifest says {T}")
+    return problems
+
+
+def _check_targets(base: str, targets: dict[str, np.ndarray], keypoints: dict[str, np.ndarray], cams: Any) -> list[str]:
+    """Problems of a render's ``targets.npz`` (arrays whose headers passed the schema) against its
+    ``keypoints.npz`` and ``cameras.json``: finite values, the same views and frames, ``joints_cam``
+    projected by each camera's ``K`` within :data:`~.writer.KEYPOINT_TOLERANCE_PX` of the keypoints,
+    ``transl`` the normalised root of ``joints_cam``, ``prob`` the keypoints' visible share, boxes
+    inside the image."""
+    from dualhuman_builder.export.writer import KEYPOINT_TOLERANCE_PX, TARGET_ARRAYS, normalised_root, projection_error
+
+    rel = f"{base}/renders/targets.npz"
+    if any(k not in targets for k in TARGET_ARRAYS) or any(k not in keypoints for k in ("joints", "frames", "views")):
+        return []  # a missing or malformed array is reported by the schema check
+    for name in ("joints_cam", "transl", "prob", "box"):
+        if not np.isfinite(targets[name]).all():
+            return [f"{rel}: {name} holds NaN or inf"]
+    if targets["views"].tolist() != keypoints["views"].tolist() or not np.array_equal(targets["frames"],
+                                                                                      keypoints["frames"]):  # fmt: skip
+        return [f"{rel}: views or frames differ from renders/keypoints.npz's"]
+    listed = cams.get("cameras") if isinstance(cams, dict) else None
+    by_name = {c.get("name"): c for c in listed if isinstance(c, dict)} if isinstance(listed, list) else {}
+    problems: list[str] = []
+    kp, jc = keypoints["joints"], targets["joints_cam"].astype(np.float64)
+    prob = targets["prob"]
+    if prob.min(initial=0.0) < 0.0 or prob.max(initial=0.0) > 1.0:
+        problems.append(f"{rel}: prob outside [0, 1]")
+    elif np.abs(prob - (kp[..., 2] > 0.5).mean(axis=-1)).max(initial=0.0) > 1e-5:
+        problems.append(f"{rel}: prob is not the share of visible joints in renders/keypoints.npz")
+    for c, view in enumerate(targets["views"].tolist()):
+        cam = by_name.get(view)
+        try:
+            K = np.asarray(cam["K"], dtype=np.float64).reshape(3, 3)
+            w, h = float(cam["width"]), float(cam["height"])
+        except (KeyError, TypeError, ValueError):
+            problems.append(f"{base}/cameras.json: no usable K, width and height for view {_q(view)!r}")
+            continue
+        if not (np.isfinite(K).all() and K[0, 0] > 0 and w > 0 and h > 0):
+            problems.append(f"{base}/cameras.json: no usable K, width and height for view {_q(view)!r}")
+            continue
+        with np.errstate(all="ignore"):
+            err = projection_error(jc[c], K, kp[c])
+            tr = np.abs(normalised_root(jc[c, :, :, 0], K, w, h) - targets["transl"][c]).max(initial=0.0)
+        if not err <= KEYPOINT_TOLERANCE_PX + 1e-3:
+            problems.append(f"{rel}: joints_cam of view {_q(view)!r} projected by its K are {err:.3g} px from "
+                            "renders/keypoints.npz's joints")  # fmt: skip
+        if not tr <= 1e-3:
+            problems.append(f"{rel}: transl of view {_q(view)!r} differs from the normalised root of joints_cam by {tr:.3g}")
+        b = targets["box"][c]
+        if (b[..., 0] > b[..., 2]).any() or (b[..., 1] > b[..., 3]).any() or b.min(initial=0.0) < 0 \
+                or (b[..., [0, 2]] > w).any() or (b[..., [1, 3]] > h).any():  # fmt: skip
+            problems.append(f"{rel}: a box of view {_q(view)!r} is not inside the {w:g} x {h:g} image")
     return problems
 
 

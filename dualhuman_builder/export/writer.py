@@ -33,6 +33,12 @@ from dualhuman_builder.tracks import InteractionSequence
 
 #: The stages a sequence can have; ``expect`` of :func:`export_dataset` names some of them.
 STAGES = ("motion", "contacts", "text", "renders")
+#: Version of the image targets' definition (``renders/targets.npz``): part of a rendered sequence's fingerprint.
+TARGETS_VERSION = 1
+#: Arrays of ``renders/targets.npz`` (shapes in :func:`~dualhuman_builder.export.schema.build_schema`).
+TARGET_ARRAYS = ("joints_cam", "transl", "prob", "box", "frames", "views")
+#: Largest distance (pixels) between a render's keypoints and its joints projected by its cameras.
+KEYPOINT_TOLERANCE_PX = 0.5
 
 
 def _fingerprint(p: PreparedItem, fps: float) -> str:
@@ -60,7 +66,154 @@ def _fingerprint(p: PreparedItem, fps: float) -> str:
     for rel, src in p.render_files:
         st = src.stat()
         add([rel, st.st_size, st.st_mtime_ns, st.st_ino])
+    if p.render_files:
+        add(["targets", TARGETS_VERSION])
     return h.hexdigest()
+
+
+# --------------------------------------------------------------------------------------------- image targets
+def normalised_root(root_cam: np.ndarray, K: np.ndarray, width: float, height: float) -> np.ndarray:
+    """The paper's translation target of camera-frame roots ``root_cam (..., 3)`` (metres) seen by
+    intrinsics ``K (..., 3, 3)`` in a ``width`` x ``height`` image: ``(u_n, v_n, z_n)`` with
+    ``u_n = 2 u / width - 1``, ``v_n = 2 v / height - 1`` (the root's pixel ``(u, v) = K root``,
+    so -1 and 1 are the image edges) and ``z_n = z width / fx = z 2 tan(fov_x / 2)`` (the depth
+    scaled by the horizontal field of view, independent of the focal length). A root at or behind
+    the camera gets ``u_n = v_n = 0``. Inverse: :func:`root_from_normalised`."""
+    r = np.asarray(root_cam, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    z = r[..., 2]
+    ok = z > 1e-6
+    zs = np.where(ok, z, 1.0)
+    u = (K[..., 0, 0] * r[..., 0] + K[..., 0, 1] * r[..., 1]) / zs + K[..., 0, 2]
+    v = K[..., 1, 1] * r[..., 1] / zs + K[..., 1, 2]
+    out = np.stack([np.where(ok, 2.0 * u / width - 1.0, 0.0), np.where(ok, 2.0 * v / height - 1.0, 0.0),
+                    z * width / K[..., 0, 0]], axis=-1)  # fmt: skip
+    return out
+
+
+def root_from_normalised(transl: np.ndarray, K: np.ndarray, width: float, height: float) -> np.ndarray:
+    """Camera-frame roots ``(..., 3)`` metres of translation targets ``transl (..., 3)`` (the
+    inverse of :func:`normalised_root` for intrinsics without skew)."""
+    t = np.asarray(transl, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    z = t[..., 2] * K[..., 0, 0] / width
+    u, v = (t[..., 0] + 1.0) * width / 2.0, (t[..., 1] + 1.0) * height / 2.0
+    return np.stack([(u - K[..., 0, 2]) * z / K[..., 0, 0], (v - K[..., 1, 2]) * z / K[..., 1, 1], z], axis=-1)
+
+
+def mask_boxes(mask: np.ndarray, labels=(1, 2)) -> np.ndarray:
+    """Each actor's box ``(len(labels), 4)`` float32 ``x0, y0, x1, y1`` in pixels (pixel edges: the
+    actor covers columns ``x0 .. x1 - 1``) of an instance mask ``(H, W)``; zeros for an actor
+    covering no pixel."""
+    out = np.zeros((len(labels), 4), np.float32)
+    for k, label in enumerate(labels):
+        hit = mask == label
+        cols, rows = np.flatnonzero(hit.any(axis=0)), np.flatnonzero(hit.any(axis=1))
+        if len(cols):
+            out[k] = (cols[0], rows[0], cols[-1] + 1, rows[-1] + 1)
+    return out
+
+
+def render_targets(joints: np.ndarray, cameras: list[dict], keypoints: np.ndarray, frames: np.ndarray, views,
+                   read_mask: Callable[[str, int], np.ndarray | None] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+    """The image-model targets of one render (``renders/targets.npz``): for every camera of
+    ``views`` and rendered frame of ``frames``, both persons' ``joints (2, T, 22, 3)`` (world
+    metres) in that camera's frame (``joints_cam (C, R, 2, 22, 3)``), the root's
+    :func:`normalised_root` over the full image (``transl (C, R, 2, 3)``), the share of the 22
+    joints ``keypoints (C, R, 2, 22, 3)`` marks visible (``prob (C, R, 2)``), and each actor's box
+    in pixels (``box (C, R, 2, 4)``, :func:`mask_boxes` of ``read_mask(view, frame)``; zeros without
+    a mask). ``cameras``: ``cameras.json`` entries (``name``, ``K``, ``R``, ``t``, ``width``,
+    ``height``). ValueError when a view has no camera, a frame is outside the sequence, or the
+    keypoints are not the joints projected by the cameras (within :data:`KEYPOINT_TOLERANCE_PX`):
+    the render is then not of this motion."""
+    joints = np.asarray(joints, dtype=np.float64)
+    frames = np.asarray(frames, dtype=np.int64)
+    views = [str(v) for v in views]
+    keypoints = np.asarray(keypoints, dtype=np.float64)
+    T = joints.shape[1]
+    if keypoints.shape != (len(views), len(frames), 2, 22, 3):
+        raise ValueError(f"renders/keypoints.npz joints have shape {keypoints.shape}, expected "
+                         f"({len(views)}, {len(frames)}, 2, 22, 3) for its views and frames")  # fmt: skip
+    if len(frames) and (frames.min() < 0 or frames.max() >= T):
+        raise ValueError(f"the render has frames {frames.min()}..{frames.max()}, the motion has {T} frames: the render "
+                         "is not of this motion (render it again)")  # fmt: skip
+    by_name = {c.get("name"): c for c in cameras if isinstance(c, dict)}
+    missing = [v for v in views if v not in by_name]
+    if missing:
+        raise ValueError(f"rendered views {missing} have no camera in cameras.json")
+    C, R = len(views), len(frames)
+    joints_cam = np.zeros((C, R, 2, 22, 3))
+    transl = np.zeros((C, R, 2, 3))
+    box = np.zeros((C, R, 2, 4), np.float32)
+    worst = 0.0
+    for c, name in enumerate(views):
+        cam = by_name[name]
+        try:
+            K, Rm, t = (np.asarray(cam[k], dtype=np.float64) for k in ("K", "R", "t"))
+            w, h = float(cam["width"]), float(cam["height"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"cameras.json: camera {name!r} lacks a usable K, R, t, width or height ({e})") from None
+        if K.shape != (3, 3) or Rm.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"cameras.json: camera {name!r} has K {K.shape}, R {Rm.shape}, t {t.shape}")
+        pc = joints[:, frames].transpose(1, 0, 2, 3) @ Rm.T + t  # (R, 2, 22, 3)
+        joints_cam[c] = pc
+        transl[c] = normalised_root(pc[:, :, 0], K, w, h)
+        worst = max(worst, projection_error(pc, K, keypoints[c]))
+        if read_mask is not None:
+            for r, f in enumerate(frames):
+                mask = read_mask(name, int(f))
+                if mask is not None:
+                    box[c, r] = mask_boxes(mask)
+    if worst > KEYPOINT_TOLERANCE_PX:
+        raise ValueError(f"renders/keypoints.npz is {worst:.2f} px from the motion's joints projected by cameras.json "
+                         "(more than 0.5 px): the render is not of this motion (render it again)")  # fmt: skip
+    prob = (keypoints[..., 2] > 0.5).mean(axis=-1)
+    return {"joints_cam": joints_cam.astype(np.float32), "transl": transl.astype(np.float32),
+            "prob": prob.astype(np.float32), "box": box, "frames": frames, "views": np.array(views)}  # fmt: skip
+
+
+def projection_error(joints_cam: np.ndarray, K: np.ndarray, keypoints: np.ndarray) -> float:
+    """Largest distance (pixels) between ``joints_cam (..., 3)`` projected by ``K (3, 3)`` and the
+    ``u, v`` of ``keypoints (..., 3)``, over the joints in front of the camera with finite keypoints
+    (0.0 when there are none)."""
+    pc = np.asarray(joints_cam, dtype=np.float64)
+    kp = np.asarray(keypoints, dtype=np.float64)
+    z = pc[..., 2]
+    ok = (z > 1e-6) & np.isfinite(kp[..., :2]).all(-1)
+    if not ok.any():
+        return 0.0
+    uvw = pc[ok] @ np.asarray(K, dtype=np.float64).T
+    d = np.linalg.norm(uvw[:, :2] / uvw[:, 2:3] - kp[ok][:, :2], axis=-1)
+    return float(d.max()) if np.isfinite(d).all() else float("inf")
+
+
+def _targets_bytes(p: PreparedItem, joints: np.ndarray) -> bytes | None:
+    """``renders/targets.npz`` of a sequence whose render has ``cameras.json`` and ``keypoints.npz``
+    (None otherwise); ``joints (2, T, 22, 3)`` world metres. ValueError for a render that is not of
+    this motion or unreadable render files."""
+    from PIL import Image
+
+    src = dict(p.render_files)
+    if "cameras.json" not in src or "renders/keypoints.npz" not in src:
+        return None
+    try:
+        cams = json.loads(src["cameras.json"].read_text(encoding="utf-8")).get("cameras", [])
+        with np.load(src["renders/keypoints.npz"], allow_pickle=False) as z:
+            keypoints, frames, views = z["joints"], z["frames"], z["views"]
+    except (OSError, ValueError, KeyError, AttributeError) as e:
+        raise ValueError(f"render files unreadable ({type(e).__name__}: {e})") from None
+
+    def read_mask(view: str, frame: int):
+        path = src.get(f"renders/views/{view}/mask/{frame:05d}.png")
+        if path is None:
+            return None
+        try:
+            with Image.open(path) as im:
+                return np.asarray(im)
+        except OSError as e:
+            raise ValueError(f"mask {path} unreadable ({e})") from None
+
+    return npz_bytes(render_targets(joints, cams if isinstance(cams, list) else [], keypoints, frames, views, read_mask))
 
 
 
@@ -145,9 +298,20 @@ def _write_sequence(p: PreparedItem, folder: Path, fps: float, fingerprint: str)
         files[rel], w = put_bytes(folder / rel, data)
         written += w
     for rel, src in p.render_files:
+        if rel == "renders/targets.npz":
+            continue  # computed below from the motion, never copied
         files[rel], w = put_copy(src, folder / rel)
         written += w
+    try:
+        targets, note = _targets_bytes(p, np.stack([motion[f"{n}.joints"] for n in PERSONS])), None
+    except ValueError as e:  # the render is kept as it is, without targets: its motion and images stay usable
+        targets, note = None, f"no image targets: {e}"
+    if targets is not None:
+        files["renders/targets.npz"], w = put_bytes(folder / "renders/targets.npz", targets)
+        written += w
     doc = _sequence_doc(p, seq, fps, files, fingerprint)
+    if note is not None:
+        doc["targets_problem"] = note
     _clean_folder(folder, set(files) | {SEQUENCE_JSON})
     written += put_bytes(folder / SEQUENCE_JSON, json_bytes(doc))[1]
     return doc, feats[0], feats[1], written
@@ -158,7 +322,8 @@ def _sequence_doc(p: PreparedItem, seq: InteractionSequence, fps: float, files: 
     inputs and ``files`` (relative path -> ``{sha256, bytes}``)."""
     views = sorted({rel.split("/")[2] for rel in files if rel.startswith("renders/views/") and rel.count("/") >= 3})
     has = {"motion": True, "contacts": p.contacts is not None, "text": bool(p.texts),
-           "cameras": "cameras.json" in files, "renders": bool(views), "keypoints": "renders/keypoints.npz" in files}  # fmt: skip
+           "cameras": "cameras.json" in files, "renders": bool(views), "keypoints": "renders/keypoints.npz" in files,
+           "targets": "renders/targets.npz" in files}  # fmt: skip
     return {
         "seq_id": p.item.seq_id,
         "frames": seq.num_frames,
@@ -297,7 +462,8 @@ def export_dataset(
             continue
         docs[sid], features[sid] = doc, (fa, fb)
         rewritten += n
-        say(f"[{k}/{len(good)}] {sid}: {doc['frames']} frames, {n} files written")
+        say(f"[{k}/{len(good)}] {sid}: {doc['frames']} frames, {n} files written"
+            + (f"; WARNING: {doc['targets_problem']}" if doc.get("targets_problem") else ""))  # fmt: skip
     for stale in sorted(seq_root.iterdir()):
         if stale.name not in docs:
             if stale.is_dir() and not stale.is_symlink():
@@ -359,8 +525,8 @@ def export_dataset(
             "frames": int(sum(d["frames"] for d in docs.values())),
             "subjects": len({s for d in docs.values() for s in d["subjects"] if s}),
             "texts": int(sum(d["num_texts"] for d in docs.values())),
-            **{f"with_{k}": sum(bool(d["has"][k]) for d in docs.values())
-               for k in ("contacts", "text", "cameras", "renders", "keypoints")},
+            **{f"with_{k}": sum(bool(d["has"].get(k)) for d in docs.values())
+               for k in ("contacts", "text", "cameras", "renders", "keypoints", "targets")},
             "skipped": len(skipped), "incomplete": len(incomplete), "files": 0,
         },  # fmt: skip
         "expect": list(expect),
@@ -370,6 +536,8 @@ def export_dataset(
                             "symmetric": docs[sid].get("symmetric")}
                       for sid in sorted(docs)},  # fmt: skip
         "incomplete": incomplete,
+        **({"targets_problems": no_targets} if (no_targets := {sid: docs[sid]["targets_problem"] for sid in sorted(docs)
+                                                                if docs[sid].get("targets_problem")}) else {}),
         "skipped": dict(sorted(skipped.items())),
         "files": {},
         **dict(extra or {}),

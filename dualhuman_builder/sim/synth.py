@@ -21,7 +21,13 @@ actors, and makes the takes:
 * ``path="ground-truth"``: scene -> export, no devices and no fit: each scene (kept in
   ``WS/synth/scenes/TAKE-gN.npz``, N the generator's version, so a second call resumes) gives the
   ground-truth bodies and, by the contacts stage's own computation on them, the contacts; every
-  sequence's ``meta.source`` and the manifest's ``source`` say ``"ground-truth"``.
+  sequence's ``meta.source`` and the manifest's ``source`` say ``"ground-truth"``. With
+  ``SynthOptions.render``, each scene's bodies are also rendered by the render stage's own
+  :func:`~dualhuman_builder.render.stage.render_sequence` from a ring of cameras
+  (:data:`GROUND_TRUTH_RENDER`, each take's ring jittered with its scene seed) into
+  ``WS/synth/renders/TAKE-gN``, and exported as a fitted take's renders are (``cameras.json``,
+  ``renders/``, with the image targets the export writer computes); a scene rendered before with the
+  same settings is not rendered again.
 
 Why days: the trackers' mounts are the studio's, strapped once per day; a take synced without a
 calibration take knows the trackers' shared offset, and the body's root with it, only to about
@@ -85,8 +91,13 @@ ONE_SIDED = ("push", "pat_on_back", "dance_turn")
 TAKES_PER_DAY = 6
 #: Most takes one plan holds (its JSON stays a few MB).
 MAX_TAKES = 100_000
-#: Contents of the export of the ground-truth path (it has no renders).
+#: Contents of the export of the ground-truth path (renders too with ``SynthOptions.render``).
 GROUND_TRUTH_EXPECT = ("motion", "contacts", "text")
+#: Where the ground-truth path keeps its renders (under the workspace), and its record of a finished render.
+RENDERS_DIR, RENDER_RECORD = "synth/renders", ".synth-render.json"
+#: The ground-truth path's camera ring: radius (m) around the pair's mean pelvis, camera height (m)
+#: above the floor, horizontal field of view (degrees), as the render stage's defaults; the template.
+GROUND_TRUTH_RENDER = {"radius_m": 3.0, "height_m": 1.4, "fov_deg": 50.0, "template": "studio"}
 
 
 class SynthError(DualhumanError, ValueError):
@@ -104,7 +115,10 @@ class SynthOptions:
     ``hold_out_actors``: this many drawn actors, and every take with one of them, go to test;
     ``hold_out_types``: every take of these types goes to test (and every long take, which chains
     all types); ``speed``: the simulated devices play this many times faster than real time while
-    the full path records them."""
+    the full path records them. ``render`` (ground-truth path only): render each scene from a ring
+    of ``render_views`` cameras at ``render_size`` x ``render_size`` pixels, every ``render_every``-th
+    frame, ``render_spp`` samples per pixel; the render settings are not part of the plan (the
+    scenes do not depend on them), the export's manifest records them."""
 
     takes: int
     seed: int = 0
@@ -118,6 +132,26 @@ class SynthOptions:
     hold_out_actors: int = 0
     hold_out_types: tuple[str, ...] = ()
     speed: float = 1.0
+    render: bool = False
+    render_size: int = 128
+    render_views: int = 4
+    render_every: int = 5
+    render_spp: int = 4
+
+    def render_settings(self) -> dict[str, Any] | None:
+        """The renders' settings (``size``, ``views``, ``every``, ``spp`` and :data:`GROUND_TRUTH_RENDER`),
+        None without ``render``; :class:`SynthError` for settings out of range."""
+        if not self.render:
+            return None
+        limits = {"render_size": (16, 4096, "--render-size", "pixels"), "render_views": (1, 64, "--render-views", "views"),
+                  "render_every": (1, 10_000, "--render-every", "frames"),
+                  "render_spp": (1, 4096, "--render-spp", "samples per pixel")}  # fmt: skip
+        for name, (lo, hi, flag, unit) in limits.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise SynthError(f"{name.replace('_', ' ')} {v!r} is out of range", fix=f"pass {flag} from {lo} to {hi} {unit}")
+        return {"size": int(self.render_size), "views": int(self.render_views), "every": int(self.render_every),
+                "spp": int(self.render_spp), **GROUND_TRUTH_RENDER}  # fmt: skip
 
     def pool_size(self) -> int:
         return self.actors if self.actors is not None else min(32, max(4, 2 * self.days()))
@@ -128,7 +162,7 @@ class SynthOptions:
 
     def arguments(self) -> dict[str, Any]:
         """The options as the plan records them (the default pool size resolved)."""
-        d = asdict(self)
+        d = {k: v for k, v in asdict(self).items() if not k.startswith("render")}  # renders do not change the plan
         d.update(takes=int(self.takes), seed=int(self.seed), hold_out_actors=int(self.hold_out_actors),
                  types=list(self.types), hold_out_types=list(self.hold_out_types), actors=int(self.pool_size()),
                  fps=float(self.fps), long_share=float(self.long_share), long_duration=float(self.long_duration),
@@ -404,6 +438,10 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
         raise SynthError("the ground-truth path writes an export: it needs its folder",
                          fix="pass --export OUT (a new or empty folder, or an earlier export to update)")  # fmt: skip
     plan = plan_synthetic(options)
+    render = options.render_settings()
+    if render is not None and path != "ground-truth":
+        raise SynthError("--render renders the ground-truth path's scenes; the full path renders its fitted takes in "
+                         "`dualhuman run`", fix="pass --path ground-truth, or leave --render out")  # fmt: skip
     root = Path(workspace)
     result = SynthResult(plan)
     with Workspace.init(root) as ws:
@@ -425,10 +463,10 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
         else:
             items = []
             for k, t in enumerate(plan["takes"], 1):
-                item = _make_ground_truth(ws, t, actors, model, log, say, f"[{k}/{n}]", result)
+                item = _make_ground_truth(ws, t, actors, model, log, say, f"[{k}/{n}]", result, render=render)
                 if item is not None:
                     items.append(item)
-            result.manifest = _export_ground_truth(ws, items, export, plan, result, log)
+            result.manifest = _export_ground_truth(ws, items, export, plan, result, log, render=render)
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -516,10 +554,12 @@ def _annotate_from_scene(ws, take: str, t: dict) -> None:
     ws.annotate([check_annotation(ann, load_vocabulary(ws.root), ws.take(take).actors)])
 
 
-def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str, result: SynthResult):
+def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str, result: SynthResult,
+                       render: dict | None = None):  # fmt: skip
     """Planned take ``t``'s scene (generated, or read from ``WS/synth/scenes/TAKE.npz`` when made
     before with the same parameters) as an :class:`~dualhuman_builder.export.items.ExportItem`
-    with its contacts; None when no scene met the quality contract."""
+    with its contacts, and its render with ``render`` (:meth:`SynthOptions.render_settings`,
+    :func:`_render_ground_truth`); None when no scene met the quality contract."""
     from dualhuman_builder.contacts.compute import compute_contacts
     from dualhuman_builder.errors import FormatError
     from dualhuman_builder.export.items import ExportItem
@@ -550,12 +590,58 @@ def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str,
         scene.save(file)
     contacts = compute_contacts(scene.sequence, workers=1)
     seq = Scene.load(file).sequence  # without cached vertices: only the poses stay in memory until the export
+    render_dir, rendered, made_s = None, "", time.perf_counter() - t1
+    if render is not None:
+        render_dir, fresh = _render_ground_truth(ws, t, seq, render, log)
+        rendered = f", rendered in {fresh:.1f} s" if fresh is not None else ", rendered before"
     (result.skipped if made_before else result.made).append(take)
-    say(f"{counter} {_describe(t)}: " + ("made before" if made_before else f"made in {time.perf_counter() - t1:.1f} s"))
+    say(f"{counter} {_describe(t)}: " + ("made before" if made_before else f"made in {made_s:.1f} s") + rendered)
     roles = ("actor", "reactor") if t["type"] in ONE_SIDED else None
     drawn = {k: t[k] for k in ("type", "seed", "tempo", "approach_distance_m", "duration_s", "preset")}
     meta = {"source": "ground-truth", "take": take, "synth": drawn}
-    return ExportItem(take, seq, subjects=tuple(t["actors"]), roles=roles, contacts=contacts, meta=meta)
+    if render is not None:
+        meta["render"] = {**render, "jitter_seed": int(t["seed"])}
+    return ExportItem(take, seq, subjects=tuple(t["actors"]), roles=roles, contacts=contacts, meta=meta,
+                      render_dir=render_dir)  # fmt: skip
+
+
+def _render_ground_truth(ws, t: dict, seq, render: dict, log) -> tuple[Path, float | None]:
+    """Render planned take ``t``'s ground-truth ``seq`` into ``WS/synth/renders/TAKE-gN`` with the
+    settings ``render`` (:meth:`SynthOptions.render_settings`): a ring of ``views`` cameras around the
+    pair (:func:`~dualhuman_builder.render.stage.stage_cameras`, jittered with the take's scene seed),
+    every ``every``-th frame. Returns ``(folder, seconds)``; seconds is None when the folder already
+    holds a finished render of the same sequence and settings (:data:`RENDER_RECORD`). A render cut
+    short resumes; a folder of other settings is rendered afresh."""
+    import hashlib
+    import shutil
+
+    from dualhuman_builder.render.stage import render_sequence, select_frames, stage_cameras
+    from dualhuman_builder.sim.scenes import GENERATOR_VERSION
+
+    out = ws.root / RENDERS_DIR / f"{t['take']}-g{GENERATOR_VERSION}"
+    h = hashlib.sha256(json.dumps({**render, "jitter_seed": int(t["seed"])}, sort_keys=True).encode())
+    for a in seq.actors:
+        for arr in (a.pose, a.transl, a.shape):
+            h.update(np.ascontiguousarray(arr).tobytes())
+    key = h.hexdigest()
+    record = out / RENDER_RECORD
+    try:
+        doc = json.loads(record.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        doc = None
+    if isinstance(doc, dict) and doc.get("key") == key and doc.get("complete") is True:
+        return out, None
+    if out.exists() and not (isinstance(doc, dict) and doc.get("key") == key):
+        shutil.rmtree(out)  # another sequence or other settings: none of its files may be exported
+    out.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps({"key": key, "complete": False}))
+    t1 = time.perf_counter()
+    frames = select_frames(seq.num_frames, render["every"])
+    cams = stage_cameras(seq, render["views"], render["size"], render["radius_m"], render["height_m"], render["fov_deg"],
+                         jitter_seed=int(t["seed"]), frames=frames)  # fmt: skip
+    render_sequence(seq, out, cams, template=render["template"], spp=render["spp"], every=render["every"], log=log)
+    record.write_text(json.dumps({"key": key, "complete": True, "settings": render}))
+    return out, time.perf_counter() - t1
 
 
 def _summary(plan: dict, result: SynthResult | None = None) -> dict:
@@ -566,9 +652,11 @@ def _summary(plan: dict, result: SynthResult | None = None) -> dict:
     return out
 
 
-def _export_ground_truth(ws, items: list, export, plan: dict, result: SynthResult, log) -> dict:
+def _export_ground_truth(ws, items: list, export, plan: dict, result: SynthResult, log,
+                         render: dict | None = None) -> dict:  # fmt: skip
     """Export the ground-truth ``items`` with the plan's split (drawn with its seed without hold-outs),
-    marked ``source: ground-truth``."""
+    marked ``source: ground-truth``; with ``render``, the renders are expected and the manifest's
+    ``synth.render`` records their settings (each sequence's ``meta.render`` adds its ring's jitter seed)."""
     from dualhuman_builder.export.writer import export_dataset
     from dualhuman_builder.labels import load_vocabulary
 
@@ -577,9 +665,13 @@ def _export_ground_truth(ws, items: list, export, plan: dict, result: SynthResul
                          "export", fix="try another --seed or a higher --fps")  # fmt: skip
     ids = {it.seq_id for it in items}
     splits = {k: v for k, v in plan_splits(plan).items() if k in ids}
+    summary = _summary(plan, result)
+    if render is not None:
+        summary["render"] = {**render, "jitter": "each take's ring is jittered with its scene seed (sequence meta.render)"}
+    expect = GROUND_TRUTH_EXPECT + (("renders",) if render is not None else ())
     return export_dataset(items, export, seed=plan["arguments"]["seed"], progress=log,
-                          vocabulary=load_vocabulary(ws.root), expect=GROUND_TRUTH_EXPECT, splits=splits or None,
-                          extra={"source": "ground-truth", "synth": _summary(plan, result)})  # fmt: skip
+                          vocabulary=load_vocabulary(ws.root), expect=expect, splits=splits or None,
+                          extra={"source": "ground-truth", "synth": summary})  # fmt: skip
 
 
 def export_fitted(ws, export, plan: dict, *, include_flagged: bool = False, log: Callable[[str], None] = print) -> dict:
