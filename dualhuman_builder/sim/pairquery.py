@@ -3,8 +3,9 @@
 Python cost.
 
 :class:`FastPair` wraps the process-wide :func:`~dualhuman_builder.geometry.distance.get_pair_distance`
-and uses its very meshes (so its BVHs, built on the first frame they ever see and refit after,
-are the ones every other caller shares). What it changes is the broad phase and what is queried:
+and uses its very meshes (so its BVHs, built on the first frame they are queried on and refit
+after, are the ones every other caller shares). What it changes is the broad phase and what is
+queried:
 
 - the body-part boxes come from one ``np.minimum.reduceat`` over the vertices sorted by part
   instead of a Python loop over the parts, and a point is tested against the parts' boxes only
@@ -12,9 +13,9 @@ are the ones every other caller shares). What it changes is the broad phase and 
   points it holds out of the test (the same answer: a min/max is exact, a point outside the
   union's box is outside every box, and a point in one box needs no other);
 - ``need_a`` / ``need_b`` name the vertices whose distances the caller reads: only those are
-  queried, while each mesh is still refit exactly when ``PairDistance`` would refit it (when any
-  vertex of the full query set passes the broad phase), so a mesh's first build happens on the
-  same frame either way. A vertex's answer does not depend on which others are queried with it.
+  queried, and a mesh is refit only when one of them passes the broad phase. A vertex's answer
+  does not depend on which others are queried with it; where a point is equally close to two
+  faces, which one's rounding it takes (the last bit) may depend on the frame the BVH was built on.
 
 Distances are metres, float64, NaN beyond the band or not queried, as ``PairDistance`` returns them.
 """
@@ -70,26 +71,24 @@ class FastPair:
 
     def __call__(self, verts_a: np.ndarray, verts_b: np.ndarray, band: float, query_a: np.ndarray | None = None,
                  query_b: np.ndarray | None = None, need_a: np.ndarray | None = None,
-                 need_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                 need_b: np.ndarray | None = None, boxes: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """``(d_a (V,), d_b (V,))`` as ``PairDistance(verts_a, verts_b, band, query_a, query_b)``
         returns them on the vertices of ``need_a`` / ``need_b`` (default: every queried vertex; a
-        ``need`` must lie within its query set); NaN on the others."""
-        boxes = (self.boxes(verts_a), self.boxes(verts_b))
+        ``need`` must lie within its query set); NaN on the others. ``boxes``: the two bodies'
+        :meth:`boxes`, when the caller has them."""
+        boxes = (self.boxes(verts_a), self.boxes(verts_b)) if boxes is None else boxes
         out = []
         sides = ((verts_a, verts_b, query_a, need_a), (verts_b, verts_a, query_b, need_b))
         for i, (p, other, only, need) in enumerate(sides):
             d = np.full(len(p), np.nan)
             if need is None:
                 near = self.candidates(p, boxes[1 - i], band, only, boxes[i])
-                refit = len(near) > 0
-            else:  # refit whenever PairDistance would, needed or not (see the module docstring)
+            else:
                 near = self.candidates(p, boxes[1 - i], band, np.asarray(need, dtype=np.int64), boxes[i])
-                refit = len(near) > 0 or len(self.candidates(p, boxes[1 - i], band, only, boxes[i])) > 0
-            if refit:
+            if len(near):
                 mesh = self.pair.meshes[1 - i]
                 mesh.update(other)
-                if len(near):
-                    d[near] = mesh.query(p[near], band)
+                d[near] = mesh.query(p[near], band)
             out.append(d)
         return out[0], out[1]
 

@@ -59,6 +59,11 @@ CONTACT_EASE_S = 0.4
 TORSO_HOLD_S = 0.2
 #: Most contact-correction passes (each re-measures only the frames that have not settled).
 MAX_CORRECTION_PASSES = 14
+#: Most frames per second the contact correction measures after its first pass, away from frames
+#: found too close (the gap errors between them are interpolated in time; every frame is corrected).
+MEASURE_FPS = 15.0
+#: Gap error (m) within which a frame whose error changes sign from pass to pass is left as it is.
+GAP_TOLERANCE = 0.003
 #: Band (m) within which signed distances are computed and stored; NaN beyond.
 DISTANCE_BAND = 0.05
 #: Most draws of a scene's variation :func:`make_scene` tries before it gives up on the quality
@@ -71,7 +76,7 @@ TORCH_THREADS = 1
 SCENE_VERSION = 1
 #: Version of the generator: bumped whenever the same parameters generate different scenes, so
 #: that cached ``scene`` stages recompute (the changes are in CHANGELOG.md).
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 
 
 class SceneContractError(DualhumanError, ValueError):
@@ -123,6 +128,8 @@ class ContactSpec:
     base: tuple | None = field(default=None, repr=False)
     settled: np.ndarray | None = field(default=None, repr=False)
     floor: np.ndarray | None = field(default=None, repr=False)
+    left: np.ndarray | None = field(default=None, repr=False)
+    last: tuple | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -307,13 +314,14 @@ def _generate(params: SceneParams, model, rng: np.random.Generator, log: Callabl
 
     poses = [p.solve(c) for p, c in zip(performers, chor.controls)]
     _make_reachable(performers, chor, poses)
-    poses = [p.solve(c) for p, c in zip(performers, chor.controls)]
     for it in range(MAX_CORRECTION_PASSES):
-        poses, worst, what = _correct_contacts(model, performers, chor, poses, params.fps)
+        worst, what, measured = _correct_contacts(model, performers, chor, params.fps)
         if log:
-            log(f"contact correction pass {it + 1}: largest gap error {1000 * worst:.1f} mm ({what or 'none'})")
+            log(f"contact correction pass {it + 1}: largest gap error {1000 * worst:.1f} mm ({what or 'none'}), "
+                f"{measured} frames measured")
         if worst < 5e-4:
             break
+    poses = [p.solve(c) for p, c in zip(performers, chor.controls)]
     seq = _sequence(model, performers, poses, chor, params)
     distances = ground_truth_distances(seq)
     # elbow swivels out of the partner; passes after the first only while the contract's penetration
@@ -365,11 +373,35 @@ def ground_truth_distances(seq, frames=None, previous=None) -> tuple[np.ndarray,
     else:
         da, db = previous[0].copy(), previous[1].copy()
     frames = np.asarray(list(frames), dtype=np.int64)
-    for f in frames:
-        a, b = pair(va[f], vb[f], DISTANCE_BAND)
+    overlap = np.zeros(len(frames), bool)
+    for k, f in enumerate(frames):
+        boxes = pair.boxes(va[f]), pair.boxes(vb[f])
+        a, b = pair(va[f], vb[f], DISTANCE_BAND, boxes=boxes)
         da[f], db[f] = a, b
-    sign_by_winding((da, db), va, vb, frames)
+        # a vertex inside the other body lies in the box around it, and if any does, so does one
+        # within the band of its surface (the surface is connected, and an edge that crosses the
+        # other's surface has an end within half its length, under 3 cm on anny, of it): where
+        # the boxes are apart or no vertex is within the band, every vertex is outside, and the
+        # winding number has nothing to decide
+        (lo_a, hi_a), (lo_b, hi_b) = ((x[:, 0].min(0), x[:, 1].max(0)) for x in boxes)
+        apart = not (np.all(lo_a <= hi_b) and np.all(lo_b <= hi_a))
+        overlap[k] = not apart and bool(np.isfinite(a).any() or np.isfinite(b).any())
+    sign_by_winding((da, db), va, vb, frames[overlap])
+    outside = frames[~overlap]
+    if len(outside):
+        covered = _winding_covered()
+        for d in (da, db):
+            x = d[outside]
+            x[:, covered] = np.abs(x[:, covered])
+            d[outside] = x
     return da, db
+
+
+def _winding_covered() -> np.ndarray:
+    """The vertices whose inside/outside :func:`~dualhuman_builder.sim.quality.sign_by_winding` decides."""
+    from dualhuman_builder.sim.quality import _winding_term
+
+    return _winding_term().obstacle_vertices
 
 
 def _rescale_time(c: Choreography, tempo: float) -> Choreography:
@@ -379,7 +411,7 @@ def _rescale_time(c: Choreography, tempo: float) -> Choreography:
     return c
 
 
-def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
+def _correct_contacts(model, performers, chor: Choreography, fps: float):
     """One pass of contact correction (see :class:`ContactSpec`): per frame, the gap between the
     palm and the partner (the smallest signed distance of either hand's vertices) is measured and
     the palm target moves along the contact normal by the gap error (both palms half of it for a
@@ -391,8 +423,9 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     frame's last measurement says would leave exactly that gap). The easing keeps a correction
     from switching on or off in one frame, which would make the pelvises jump at each end of an
     embrace and could leave an arm inside the partner at the release
-    (docs/decisions/0022-ground-truth-scenes.md). Returns the re-solved poses, the largest gap
-    error measured before this pass (m) and whose it was."""
+    (docs/decisions/0022-ground-truth-scenes.md). Poses only the frames it measures (from the
+    controls it moves). Returns the largest gap error measured before this pass (m), whose it
+    was, and how many frames it measured."""
     import roma
     import torch
     from scipy.ndimage import gaussian_filter1d
@@ -400,19 +433,34 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     from dualhuman_builder.sim.pairquery import get_fast_pair
 
     if not chor.contacts:
-        return poses, 0.0, ""
+        return 0.0, "", 0
     T = chor.controls[0].frames
     # frames still to measure: those of a contact that have not settled (see below)
     active = [(c.frames | (c.guard if c.guard is not None else False)) & (True if c.settled is None else ~c.settled)
-              for c in chor.contacts]  # fmt: skip
-    frames = np.flatnonzero(np.any(active, axis=0))
+              & (True if c.left is None else ~c.left) for c in chor.contacts]  # fmt: skip
+    # of those, the frames measured: all on the first pass; after it a grid of at most
+    # MEASURE_FPS, the ends of each run of frames to measure, and every frame near one found more
+    # than GAP_TOLERANCE too close on the last pass (a palm can cut through the partner on a
+    # single frame); the others' errors are interpolated between them
+    stride = max(1, int(fps // MEASURE_FPS))
+    sampled = []
+    for spec, act in zip(chor.contacts, active):
+        if spec.last is None:
+            sampled.append(act)
+            continue
+        ends = act & ~(np.roll(act, 1) & np.roll(act, -1))
+        ends[[0, -1]] = act[[0, -1]]
+        close = np.convolve(spec.last[1], np.ones(2 * stride - 1), mode="same") > 0
+        sampled.append(act & ((np.arange(T) % stride == 0) | ends | close))
+    frames = np.flatnonzero(np.any(sampled, axis=0))
     if not len(frames):
-        return poses, 0.0, ""
+        return 0.0, "", 0
     verts = []
-    for p, (local, transl) in zip(performers, poses):
+    for p, c in zip(performers, chor.controls):
+        local, transl = p.solve(c.take(frames))  # a frame's pose depends on its own controls only
         with torch.no_grad():
-            out = model(roma.rotmat_to_rotvec(torch.tensor(local[frames])).float(), torch.tensor(p.sk.shape),
-                        torch.tensor(transl[frames], dtype=torch.float32))  # fmt: skip
+            out = model(roma.rotmat_to_rotvec(torch.tensor(local)).float(), torch.tensor(p.sk.shape),
+                        torch.tensor(transl, dtype=torch.float32))  # fmt: skip
         verts.append(out.vertices.numpy())
     fast = get_fast_pair()
     hands = np.concatenate([_hand_vertices(model, s) for s in SIDES])  # only palms are corrected
@@ -421,18 +469,16 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
     for k, f in enumerate(frames):
         # each body's hands, and each body's vertices near the other's hands (a chest pressing
         # into a palm is as much a penetration as the palm pressing into the chest)
-        q, near = [], []
+        near = []
         for i in (0, 1):
             box = verts[1 - i][k][hands]
             lo, hi = box.min(0) - DISTANCE_BAND, box.max(0) + DISTANCE_BAND
-            close = np.flatnonzero(np.all((verts[i][k] >= lo) & (verts[i][k] <= hi), axis=1))
-            near.append(close)
-            q.append(np.concatenate([hands, close]))
+            near.append(np.flatnonzero(np.all((verts[i][k] >= lo) & (verts[i][k] <= hi), axis=1)))
         # of those, only what a palm contact measured on this frame reads: its palm, and the
         # partner's vertices near that palm
         need = ([], [])
         for n, spec in palms:
-            if not active[n][f]:
+            if not sampled[n][f]:
                 continue
             mine = _hand_vertices(model, spec.side)
             v = verts[spec.actor][k][mine]
@@ -443,7 +489,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             need[spec.actor].append(mine)
             need[1 - spec.actor].append(theirs)
         need_a, need_b = (np.concatenate(x) if x else np.zeros(0, dtype=np.int64) for x in need)
-        dists.append(fast(verts[0][k], verts[1][k], DISTANCE_BAND, q[0], q[1], need_a, need_b))
+        dists.append(fast(verts[0][k], verts[1][k], DISTANCE_BAND, need_a=need_a, need_b=need_b))
     worst, worst_what = 0.0, ""
     for n, (spec, act) in enumerate(zip(chor.contacts, active)):
         torso = spec.side is None
@@ -458,9 +504,11 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             spec.base = (getattr(track, field_name).copy(), None if partner is None else getattr(partner, field_name).copy())
             spec.offset = np.zeros(T)
             spec.floor = np.full(T, -np.inf)
+            spec.left = np.zeros(T, bool)
+            spec.last = (np.full(T, np.nan), np.zeros(T, bool))
         err = np.zeros(T)
         for k, f in enumerate(frames):
-            if not act[f]:
+            if not sampled[n][f]:
                 continue
             d_mine, d_theirs = dists[k][spec.actor], dists[k][1 - spec.actor]
             if torso:  # trunk against trunk only: hands resting on a back are not a torso collision
@@ -472,7 +520,20 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
             # the partner's vertices that are near this palm
             gap = min(gap, np.nanmin(d_theirs[partner_near[(n, k)]], initial=DISTANCE_BAND))
             err[f] = CONTACT_GAP - gap  # > 0: too close, move apart; < 0: too far, move together
+        between = np.flatnonzero(act & ~sampled[n])
+        if len(between):
+            at = np.flatnonzero(sampled[n])
+            err[between] = np.interp(between, at, err[at])
         guard = (spec.guard if spec.guard is not None else np.zeros(T, bool)) & ~spec.frames
+        # a frame whose gap error changed sign from the previous pass, within GAP_TOLERANCE both
+        # times, oscillates about the gap (the palms and torsos of an embrace move each other):
+        # it is left where it is and no longer measured
+        last_err = spec.last[0]
+        driven = act & np.isfinite(last_err) & (spec.frames | (last_err > 0))  # guard frames: only pushed apart
+        done = driven & (err * last_err < 0) & (np.abs(err) <= GAP_TOLERANCE) & (np.abs(last_err) <= GAP_TOLERANCE)
+        spec.left |= done
+        err[done] = 0.0
+        spec.last = (np.where(act & ~done, err, np.nan), act & (err > GAP_TOLERANCE))
         # guard frames measured now: the offset that would leave exactly CONTACT_GAP there, a
         # lower bound on theirs (far ones: far below; re-measured every pass, so never stale)
         measured = guard & act
@@ -495,7 +556,7 @@ def _correct_contacts(model, performers, chor: Choreography, poses, fps: float):
         getattr(track, field_name)[:] = spec.base[0] - share * spec.offset[:, None] * spec.normal
         if partner is not None:
             getattr(partner, field_name)[:] = spec.base[1] + share * spec.offset[:, None] * spec.normal
-    return [p.solve(c) for p, c in zip(performers, chor.controls)], worst, worst_what
+    return worst, worst_what, len(frames)
 
 
 def _ease_out(values: np.ndarray, frames: np.ndarray, guard: np.ndarray, ramp: float, hold: float = 0.0) -> np.ndarray:

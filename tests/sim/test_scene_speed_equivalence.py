@@ -1,7 +1,8 @@
 """The scene generator's fast paths give the answers of the plain ones: the vectorised pair query
-(:mod:`dualhuman_builder.sim.pairquery`) against ``PairDistance`` bit for bit, and generation on
-one torch thread (:data:`~dualhuman_builder.sim.scenes.TORCH_THREADS`), with the caller's thread
-count restored."""
+(:mod:`dualhuman_builder.sim.pairquery`) against ``PairDistance`` bit for bit, the ground-truth
+distances with the winding number skipped where no vertex can be inside against the winding number
+on every frame, and generation on one torch thread
+(:data:`~dualhuman_builder.sim.scenes.TORCH_THREADS`), with the caller's thread count restored."""
 
 from __future__ import annotations
 
@@ -60,10 +61,9 @@ def test_fast_pair_answers_as_pair_distance_bit_for_bit(dx, dz, yaw, band, query
         assert np.isnan(g[rest]).all()
 
 
-def test_fast_pair_refits_a_mesh_whenever_pair_distance_does(body_model):
-    """A ``need`` that leaves one direction with nothing to query still refits that mesh when the
-    full query set has candidates (so a mesh is built on the same frame either way), and a far
-    body refits nothing."""
+def test_fast_pair_builds_no_mesh_for_a_far_body(body_model):
+    """A body farther than the band from the other queries nothing, so no BVH is built; a near
+    one builds both."""
     from dualhuman_builder.geometry.distance import PairDistance, get_pair_distance
     from dualhuman_builder.sim.pairquery import FastPair
 
@@ -76,10 +76,33 @@ def test_fast_pair_refits_a_mesh_whenever_pair_distance_does(body_model):
     fresh = PairDistance(faces, len(a), None, regions)
     fast = FastPair(fresh)
     everyone = np.arange(len(a))
-    fast(a, b + [5.0, 0.0, 0.0], 0.05, everyone, everyone, everyone[:0], everyone[:0])
+    far = fast(a, b + [5.0, 0.0, 0.0], 0.05, everyone, everyone)
     assert fresh.meshes[0].mesh is None and fresh.meshes[1].mesh is None  # nothing near: no mesh built
-    fast(a, b, 0.05, everyone, everyone, everyone[:0], everyone[:0])
+    assert np.isnan(far[0]).all() and np.isnan(far[1]).all()
+    fast(a, b, 0.05, everyone, everyone)
     assert fresh.meshes[0].mesh is not None and fresh.meshes[1].mesh is not None
+
+
+def test_ground_truth_distances_skip_the_winding_number_only_where_it_decides_nothing(body_model):
+    """A handshake's ground truth, made with the winding number skipped on frames whose bodies'
+    boxes are apart or have no vertex within the band, equals the banded distances signed by the
+    winding number on every frame, bit for bit; and some frames were skipped (the approach)."""
+    from dualhuman_builder.sim import scenes
+    from dualhuman_builder.sim.pairquery import get_fast_pair
+    from dualhuman_builder.sim.quality import sign_by_winding
+
+    sc = make_scene(SceneParams(type="handshake", seed=0, fps=5.0), model=body_model)
+    seq = sc.sequence
+    got = scenes.ground_truth_distances(seq)
+    pair = get_fast_pair()
+    va, vb = seq.actors[0].vertices(), seq.actors[1].vertices()
+    want = np.empty(va.shape[:2], np.float16), np.empty(vb.shape[:2], np.float16)
+    for f in range(len(va)):
+        want[0][f], want[1][f] = pair(va[f], vb[f], scenes.DISTANCE_BAND)
+    far = [f for f in range(len(va)) if not (np.isfinite(want[0][f]).any() or np.isfinite(want[1][f]).any())]
+    assert far, "the handshake's approach has frames with no vertex within the band"
+    sign_by_winding(want, va, vb)
+    assert all(_same(w, g) for w, g in zip(want, got))
 
 
 def test_make_scene_runs_on_one_torch_thread_and_restores_the_callers(body_model):
