@@ -5,11 +5,11 @@ One module per command group, in pipeline order: :mod:`.workspace` (init, status
 :mod:`.body`, :mod:`.sim` (scene, sim), :mod:`.capture` (capture, log, replay, import),
 :mod:`.stages` (sync, fuse, fit, contacts, render, sheet), :mod:`.export` (annotate, export),
 :mod:`.quality` (gates, review), :mod:`.run` (run), :mod:`.synth` (synth), :mod:`.models` (train,
-evaluate, refine, models), :mod:`.tools` (doctor, demo); :mod:`.console` formats tables and errors.
+evaluate, refine, models), :mod:`.estimate` (estimate), :mod:`.tools` (doctor, demo); :mod:`.console` formats tables and errors.
 """
 
 from dualhuman_builder.cli import (  # noqa: F401  (registers the commands)
-    body, capture, export, models, quality, run, sim, stages, synth, tools, workspace)
+    body, capture, estimate, export, models, quality, run, sim, stages, synth, tools, workspace)
 from dualhuman_builder.cli.app import main
 
 __all__ = ["main"]

@@ -101,7 +101,8 @@ def _load_builtin() -> None:
     """Import the bundled models, which register themselves (kept lazy: torch models load on demand)."""
     import importlib
 
-    for module in ("dualhuman_builder.models.reaction_prior", "dualhuman_builder.models.pose_estimator"):
+    for module in ("dualhuman_builder.models.reaction_prior", "dualhuman_builder.models.pose_estimator",
+                   "dualhuman_builder.models.temporal", "dualhuman_builder.models.lifting"):
         try:
             importlib.import_module(module)
         except ModuleNotFoundError as e:  # a bundled model not present in this checkout

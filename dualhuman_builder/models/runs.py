@@ -284,9 +284,11 @@ def write_readme(run_dir: Path, summary: dict[str, Any]) -> None:
          f"of {s['window']} frames."),
         "",
         (f"Data: `{s['export']['path']}` (manifest SHA-256 `{s['export']['manifest_sha256'][:16]}...`), split "
-         f"`train`: {s['data']['sequences']} sequences, {s['data']['windows']} windows, {s['data']['frames']} frames; "
-         f"{len(s['data']['swapped'])} with person b as the actor, {len(s['data']['too_short'])} shorter than a window "
-         "(left out)."),
+         f"`train`: {s['data']['sequences']} sequences, {s['data']['windows']} items"
+         + (f", {s['data']['frames']} frames" if s['data'].get('frames') is not None else "")
+         + (f"; {len(s['data']['swapped'])} with person b as the actor" if s['data'].get('swapped') is not None else "")
+         + (f", {len(s['data']['too_short'])} shorter than a window (left out)" if s['data'].get('too_short') is not None
+            else "") + "."),
         "",
         f"Status: {s['status']}, {s['global_step']} of {s['total_steps']} steps, {s['time_s']:.1f} s of training.",
         "",

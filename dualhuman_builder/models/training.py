@@ -283,6 +283,14 @@ def _dataset(export_dir: Path, split: str, config: dict[str, Any], seed: int, sp
                               seed=seed, cameras=int(o["cameras"]))  # fmt: skip
 
 
+def _data_facts(data) -> dict[str, Any]:
+    """What a run trained on, for its config and README: sequences, items (windows or images), frames,
+    and the windows dataset's role swaps and too-short sequences (None for a dataset without them)."""
+    return {"sequences": getattr(data, "num_sequences", None), "windows": len(data),
+            "frames": getattr(data, "frames", None), "swapped": getattr(data, "swapped", None),
+            "too_short": getattr(data, "too_short", None)}  # fmt: skip
+
+
 def _spec(spec_name_or_spec: str | ModelSpec) -> ModelSpec:
     if isinstance(spec_name_or_spec, str):
         return get_model(spec_name_or_spec)
@@ -337,8 +345,7 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
     from dualhuman_builder import __version__
 
     doc.update(toolkit_version=__version__, torch_version=torch.__version__, device=str(dev), amp=amp,
-               data={"split": "train", **_data_options(config), "sequences": data.num_sequences, "windows": len(data),
-                     "frames": data.frames, "swapped": data.swapped, "too_short": data.too_short})  # fmt: skip
+               data={"split": "train", **_data_options(config), **_data_facts(data)})
     if start is None:
         runs.write_json(run_dir / runs.CONFIG, doc)
 
@@ -357,7 +364,7 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
     last_ckpt_time = time.perf_counter()
     status = "complete"
     with _Display(progress) as show, open(run_dir / runs.METRICS, "a" if start else "w", encoding="utf-8") as metrics, _Interrupt() as interrupt:
-        show.say(f"training {spec.name} on {data.num_sequences} sequences ({len(data)} windows of {data.window} frames), "
+        show.say(f"training {spec.name} on {getattr(data, 'num_sequences', '?')} sequences ({len(data)} items), "
                  f"{total} steps on {dev}{' (bf16)' if amp else ''} -> {run_dir}")  # fmt: skip
         offset = 0
         try:
@@ -526,7 +533,7 @@ def evaluate(run_dir: str | Path, export_dir: str | Path, split: str = "test", *
         "model": spec.name,
         "split": split,
         "export": {"path": str(export_dir.resolve()), "manifest_sha256": _manifest_digest(export_dir)},
-        "sequences": data.num_sequences,
+        "sequences": getattr(data, "num_sequences", None),
         "windows": len(data),
         "seed": int(seed),
         "time_s": time.perf_counter() - t0,

@@ -1,0 +1,144 @@
+"""`estimate_export` and `dualhuman estimate`: the whole pose pipeline on a real tiny rendered export,
+written as an export that `export verify` accepts, with what was estimated and carried over recorded."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from hypothesis import given
+from hypothesis import strategies as st
+from tiny_render_export import make_tiny_render_export
+
+import dualhuman_builder.cli.estimate  # noqa: F401  (registers `dualhuman estimate`)
+from dualhuman_builder.cli.app import main
+from dualhuman_builder.errors import DualhumanError
+from dualhuman_builder.export.files import load_motion, read_manifest
+from dualhuman_builder.export.verify import verify_export
+from dualhuman_builder.models.base import Phase, register
+from dualhuman_builder.models.estimate import estimate_export, fill_frames
+from dualhuman_builder.models.lifting import NAME as LIFT
+from dualhuman_builder.models.lifting import LiftingBaselineSpec
+from dualhuman_builder.models.temporal import NAME as TEMPORAL
+from dualhuman_builder.models.temporal import TemporalRefinerSpec
+from dualhuman_builder.models.training import train
+
+
+class OracleSpec(LiftingBaselineSpec):
+    """An 'estimator' that returns the frame's true camera-space joints, in swapped person order on
+    frames 0 and 6 (the first one among them), so linking, identity and the world transform are exact."""
+
+    name = "oracle-estimator"
+    predict_keys = ("joints_cam", "frame")
+
+    def phases(self, config):
+        return [Phase("lift", 1)]
+
+    @staticmethod
+    def predict(module, batch):
+        j = batch["joints_cam"].clone()
+        swap = (batch["frame"] // 3) % 2 == 0
+        j[swap] = j[swap].flip(1)
+        return {"joints_cam": j + 0.0 * next(module.parameters()).sum()}
+
+
+register(LIFT, LiftingBaselineSpec)
+register(TEMPORAL, TemporalRefinerSpec)
+register(OracleSpec.name, OracleSpec)
+
+
+@pytest.fixture(autouse=True)
+def _threads():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory):
+    return make_tiny_render_export(tmp_path_factory.mktemp("estimate"))
+
+
+@pytest.fixture(scope="module")
+def runs(export, tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    small = {"size": 16, "hidden": 32, "blocks": 1}
+    out = {"oracle": train(OracleSpec.name, export, root / "oracle", config_overrides=small, progress=False),
+           "lift": train(LIFT, export, root / "lift", config_overrides={**small, "steps": 3}, batch_size=4, progress=False),
+           "temporal": train(TEMPORAL, export, root / "temporal", batch_size=2, progress=False,
+                             config_overrides={"window": 8, "hidden": 16, "res_hidden": 8, "blocks": 1, "steps": 2}),
+           "prior": train("reaction-prior", export, root / "prior", batch_size=2, progress=False,
+                          config_overrides={"window": 8, "latent_dim": 8, "layers": 1, "heads": 2, "ff": 16, "mapper_blocks": 1,
+                                            "mapper_hidden": 16, "vae_steps": 2, "inn_steps": 2, "stats_batches": 1})}  # fmt: skip
+    return out
+
+
+def test_fill_frames_interpolates_between_rendered_frames_and_holds_the_ends():
+    v = np.array([[0.0, 10.0], [3.0, 40.0]])
+    out = fill_frames(np.array([2, 5]), v, 8)
+    assert out.shape == (8, 2)
+    np.testing.assert_allclose(out[:, 0], [0, 0, 0, 1, 2, 3, 3, 3])
+    np.testing.assert_allclose(out[3:6, 1], [20, 30, 40])
+
+
+@given(st.lists(st.integers(0, 30), min_size=1, max_size=8, unique=True), st.integers(1, 40), st.integers(0, 2**31))
+def test_fill_frames_keeps_known_frames_and_stays_between_them(frames, extra, seed):
+    frames = np.sort(np.asarray(frames))
+    T = int(frames.max()) + extra
+    v = np.random.default_rng(seed).normal(size=(len(frames), 2, 3))
+    out = fill_frames(frames, v, T)
+    assert out.shape == (T, 2, 3) and np.isfinite(out).all()
+    np.testing.assert_allclose(out[frames], v, atol=1e-5)
+    assert (out >= v.min(0) - 1e-5).all() and (out <= v.max(0) + 1e-5).all()
+
+
+def test_an_exact_estimator_gives_the_truth_in_the_world_on_rendered_frames(export, runs, tmp_path):
+    out = tmp_path / "est"
+    summary = estimate_export(runs["oracle"], export, out, progress=False)
+    assert verify_export(out) == []
+    assert summary["errors"]["estimate_rendered"]["mpjpe_mm"] < 0.05
+    assert summary["errors"]["estimate_rendered"]["translation_mm"] < 0.05
+    assert summary["stages"] == ["estimate", "fill"] and summary["rendered_frames"] == 8 and summary["frames"] == 24
+    for sid in ("tiny00", "tiny01"):
+        seq = summary["per_sequence"][sid]
+        assert seq["first_frame_swapped"] and seq["rendered_frames"] == 4 and seq["filled_frames"] == 8
+        truth = load_motion(export / f"sequences/{sid}/motion.npz")
+        est = load_motion(out / f"sequences/{sid}/motion.npz")
+        frames = np.arange(0, 12, 3)
+        np.testing.assert_allclose(est["a.joints"][frames], truth["a.joints"][frames], atol=1e-4)
+        np.testing.assert_allclose(est["b.joints"][frames], truth["b.joints"][frames], atol=1e-4)
+        np.testing.assert_array_equal(est["a.pose"], truth["a.pose"])  # carried over, and said so
+        meta = json.loads((out / f"sequences/{sid}/sequence.json").read_text())["meta"]["estimation"]
+        assert "pose and shape" in " ".join(meta["carried_over"]) and meta["filled_frames"] == 8
+    manifest = read_manifest(out)
+    assert manifest["estimation"]["stages"] == ["estimate", "fill"] and "renders" in manifest["estimation"]["not_carried"]
+    assert manifest["estimation"]["not_estimated"] == []
+    assert manifest["sequences"]["tiny01"]["split"] == read_manifest(export)["sequences"]["tiny01"]["split"]
+
+
+def test_the_cli_runs_the_lifting_baseline_the_temporal_network_and_the_prior(export, runs, tmp_path):
+    out = tmp_path / "est"
+    res = CliRunner().invoke(main, ["estimate", str(runs["lift"]), str(export), "--out", str(out), "--temporal",
+                                    str(runs["temporal"]), "--prior", str(runs["prior"]), "--prior-window", "8",
+                                    "--prior-iterations", "2", "--camera", "view01", "--json"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.output)
+    assert doc["stages"] == ["estimate", "fill", "temporal", "prior"] and doc["estimator_model"] == LIFT
+    assert set(doc["errors"]) >= {"estimate_rendered", "fill", "temporal", "prior", "final"}
+    assert verify_export(out) == []
+    assert read_manifest(out)["estimation"]["camera"] == "view01"
+
+
+def test_wrong_runs_and_cameras_are_clear_errors(export, runs, tmp_path):
+    with pytest.raises(DualhumanError, match="cannot estimate"):
+        estimate_export(runs["temporal"], export, tmp_path / "a", progress=False)
+    with pytest.raises(DualhumanError, match="not of the temporal refiner"):
+        estimate_export(runs["oracle"], export, tmp_path / "b", temporal_run=runs["lift"], progress=False)
+    with pytest.raises(DualhumanError):
+        estimate_export(runs["oracle"], export, tmp_path / "c", camera="nope", progress=False)
+    with pytest.raises(DualhumanError, match="into itself"):
+        estimate_export(runs["oracle"], export, export, progress=False)
