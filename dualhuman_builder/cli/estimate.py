@@ -44,7 +44,8 @@ def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: 
     \b
     Examples:
       dualhuman estimate runs/estimator WS/export --out WS/estimated
-      dualhuman estimate runs/estimator WS/export --out WS/estimated --temporal runs/smooth --prior runs/prior
+      dualhuman estimate runs/estimator OUT --out EST \\
+        --temporal runs/smooth --prior runs/prior
     """
     from rich.markup import escape
 

@@ -49,9 +49,9 @@ def train(model: str, dataset: Path, out: Path, steps_scale: float, batch_size: 
 
     \b
     Examples:
-      dualhuman train reaction-prior WS/export --out runs/prior
-      dualhuman train reaction-prior WS/export --out runs/quick --steps-scale 0.05 --set window=32
-      dualhuman train reaction-prior WS/export --out runs/gpu --device cuda --batch-size 128
+      dualhuman train reaction-prior OUT --out runs/prior
+      dualhuman train reaction-prior OUT --out runs/quick --steps-scale 0.05
+      dualhuman train reaction-prior OUT --out runs/gpu --device cuda
     """
     from dualhuman_builder.models.training import parse_set
     from dualhuman_builder.models.training import train as run_training
@@ -151,7 +151,7 @@ def refine(run: Path, dataset: Path, out: Path, window: int, lambda_prior: float
     \b
     Examples:
       dualhuman refine runs/prior WS/export --out WS/refined
-      dualhuman refine runs/prior WS/export --out WS/refined --noisy-from WS/estimated --device cuda
+      dualhuman refine runs/prior OUT --out REFINED --noisy-from EST --device cuda
     """
     from rich.markup import escape
 

@@ -83,12 +83,12 @@ def _check_id(folder: Path, sid) -> None:
 
 
 def actor_is_b(text_doc: dict[str, Any] | None) -> bool:
-    """Whether person b is the actor: ``text.json`` roles name b ``actor`` (and the sequence is not
-    symmetric); a symmetric sequence or one without roles has person a act."""
+    """Whether person b is the actor: ``text.json`` roles are exactly ``["reactor", "actor"]`` (the
+    export's form) and the sequence is not symmetric; a symmetric sequence, one without roles or with
+    roles of another form has person a act."""
     if not isinstance(text_doc, dict) or text_doc.get("symmetric") is True:
         return False
-    roles = text_doc.get("roles")
-    return isinstance(roles, list) and len(roles) == 2 and roles[1] == "actor" and roles[0] != "actor"
+    return text_doc.get("roles") == ["reactor", "actor"]
 
 
 def read_sequence(folder: Path, sid: str) -> tuple[dict[str, np.ndarray], dict[str, Any] | None]:

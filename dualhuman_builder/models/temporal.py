@@ -53,7 +53,7 @@ from dualhuman_builder.models.base import Phase, register
 from dualhuman_builder.models.data import InteractionWindows
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
 from dualhuman_builder.models.reaction_prior.representation import Normalizer
-from dualhuman_builder.models.reaction_prior.spec import noise_model
+from dualhuman_builder.models.reaction_prior.noise import noise_model
 
 NAME = "temporal-refiner"
 

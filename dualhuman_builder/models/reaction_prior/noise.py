@@ -32,6 +32,7 @@ None of these come from the toolkit's simulator.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 
@@ -81,3 +82,11 @@ def corrupt(joints: torch.Tensor, visibility: torch.Tensor, model: NoiseModel = 
     jitter = randn(*j.shape) * model.jitter_m
     bias = randn(j.shape[0], 1, 1, 3) * torch.tensor(model.root_bias_m, dtype=j.dtype, device=j.device)
     return j + pose + jitter + bias
+
+
+def noise_model(config: dict[str, Any]) -> NoiseModel:
+    """The :class:`NoiseModel` of a model config's ``noise`` settings (defaults for those not set)."""
+    n = dict(config.get("noise") or {})
+    if "root_bias_m" in n:
+        n["root_bias_m"] = tuple(float(x) for x in n["root_bias_m"])
+    return NoiseModel(**n)

@@ -37,7 +37,8 @@ import torch
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.models.reaction_prior.noise import corrupt
 from dualhuman_builder.models.reaction_prior.representation import canonical_pair, flat, to_world
-from dualhuman_builder.models.reaction_prior.spec import kl_gauss, noise_model
+from dualhuman_builder.models.reaction_prior.noise import noise_model
+from dualhuman_builder.models.reaction_prior.vae import kl_gauss
 
 #: Windows optimised together (memory: a few MB per window with the CPU-sized VAE).
 CHUNK_WINDOWS = 64

@@ -29,9 +29,9 @@ from torch import nn
 
 from dualhuman_builder.models.base import Phase
 from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
-from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
+from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt, noise_model
 from dualhuman_builder.models.reaction_prior.representation import FEATS, Normalizer, canonical_pair, flat, unflat
-from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE
+from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE, kl_gauss
 
 NAME = "reaction-prior"
 
@@ -67,22 +67,6 @@ DEFAULTS: dict[str, Any] = {
     "eval_refine_iterations": 50,
     "eval_seed": 0,
 }
-
-_LOG_STD_RANGE = (-8.0, 4.0)  # log sigma clamped inside the KL only, so an outlier cannot overflow exp
-
-
-def kl_gauss(mu1: torch.Tensor, logstd1: torch.Tensor, mu2: torch.Tensor, logstd2: torch.Tensor) -> torch.Tensor:
-    """``KL[N(mu1, s1) || N(mu2, s2)]`` of diagonal Gaussians, per element (nats), ``s = exp(logstd)``."""
-    l1, l2 = logstd1.clamp(*_LOG_STD_RANGE), logstd2.clamp(*_LOG_STD_RANGE)
-    return l2 - l1 + (torch.exp(2 * l1) + (mu1 - mu2) ** 2) / (2 * torch.exp(2 * l2)) - 0.5
-
-
-def noise_model(config: dict[str, Any]) -> NoiseModel:
-    n = dict(config.get("noise") or {})
-    if "root_bias_m" in n:
-        n["root_bias_m"] = tuple(float(x) for x in n["root_bias_m"])
-    return NoiseModel(**n)
-
 
 class ReactionPrior(nn.Module):
     """Normaliser + motion code (VAE or, ablated, DCT) + generator (INN or, ablated, MLP).

@@ -93,3 +93,12 @@ class DCTCodec(nn.Module):
     def decode(self, z: torch.Tensor, length: int) -> torch.Tensor:
         self._check(length)
         return torch.einsum("bfk,lk->blf", z.reshape(z.shape[0], self.feats, self.coeffs), self.basis)
+
+
+_LOG_STD_RANGE = (-8.0, 4.0)  # log sigma clamped inside the KL only, so an outlier cannot overflow exp
+
+
+def kl_gauss(mu1: torch.Tensor, logstd1: torch.Tensor, mu2: torch.Tensor, logstd2: torch.Tensor) -> torch.Tensor:
+    """``KL[N(mu1, s1) || N(mu2, s2)]`` of diagonal Gaussians, per element (nats), ``s = exp(logstd)``."""
+    l1, l2 = logstd1.clamp(*_LOG_STD_RANGE), logstd2.clamp(*_LOG_STD_RANGE)
+    return l2 - l1 + (torch.exp(2 * l1) + (mu1 - mu2) ** 2) / (2 * torch.exp(2 * l2)) - 0.5
