@@ -169,7 +169,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     """
     from dualhuman_builder.export.files import load_motion, read_manifest
     from dualhuman_builder.export.items import ExportItem
-    from dualhuman_builder.export.writer import export_dataset
+    from dualhuman_builder.models.derived import write_derived_export
     from dualhuman_builder.fileio import open_confined
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
@@ -316,11 +316,8 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     summary = {**how, "sequences": len(items), "frames": int(sum(c for c, _ in totals["fill"])),
                "rendered_frames": int(sum(c for c, _ in totals["estimate_rendered"])), "errors": figures,
                "per_sequence": per_seq}  # fmt: skip
-    split_doc = manifest.get("split", {})
-    export_dataset(items, dst, split_ratio=float(split_doc.get("ratio", 0.75)), seed=int(split_doc.get("seed", 0)),
-                   subject_disjoint=bool(split_doc.get("subject_disjoint", False)), expect=("motion", "text"),
-                   vocabulary=vocabulary, splits=splits,
-                   extra={"estimation": {k: v for k, v in summary.items() if k != "per_sequence"}})  # fmt: skip
+    write_derived_export(items, dst, manifest, vocabulary, splits,
+                         {"estimation": {k: v for k, v in summary.items() if k != "per_sequence"}})
     summary["out"] = str(dst)
     if progress:
         f = figures["final"]

@@ -183,7 +183,7 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
     """
     from dualhuman_builder.export.files import read_manifest
     from dualhuman_builder.export.items import ExportItem
-    from dualhuman_builder.export.writer import export_dataset
+    from dualhuman_builder.models.derived import write_derived_export
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
     from dualhuman_builder.models.training import load_run
@@ -282,11 +282,8 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
 
     summary = {**how, "sequences": len(items), "windows": n_windows, "frames": int(sum(t for t, _ in totals["before"])),
                "before": mean("before"), "after": mean("after"), "per_sequence": per_seq}  # fmt: skip
-    split_doc = manifest.get("split", {})
-    export_dataset(items, dst, split_ratio=float(split_doc.get("ratio", 0.75)), seed=int(split_doc.get("seed", 0)),
-                   subject_disjoint=bool(split_doc.get("subject_disjoint", False)), expect=("motion", "text"),
-                   vocabulary=vocabulary, splits=splits,
-                   extra={"refinement": {k: v for k, v in summary.items() if k != "per_sequence"}})  # fmt: skip
+    write_derived_export(items, dst, manifest, vocabulary, splits,
+                         {"refinement": {k: v for k, v in summary.items() if k != "per_sequence"}})
     summary["out"] = str(dst)
     if progress:
         b, f = summary["before"], summary["after"]
