@@ -168,8 +168,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     camera, or ``out_dir`` equal to the input.
     """
     from dualhuman_builder.export.files import load_motion, read_manifest
-    from dualhuman_builder.export.items import ExportItem
-    from dualhuman_builder.models.derived import write_derived_export
+    from dualhuman_builder.models.derived import derived_item, write_derived_export
     from dualhuman_builder.fileio import open_confined
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
@@ -296,12 +295,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
         meta = dict(seq_doc.get("meta") or {})
         meta["estimation"] = {**rec, "stages": stages, "estimated": how["estimated"], "carried_over": how["carried_over"],
                               "identity": how["identity"], "unrendered_frames": how["unrendered_frames"]}  # fmt: skip
-        roles = text.get("roles")
-        items.append(ExportItem(sid, seq, subjects=tuple(seq_doc.get("subjects") or ("", ""))[:2],
-                                labels=list(text.get("labels", [])), texts=list(text.get("texts", [])),
-                                roles=tuple(roles) if isinstance(roles, list) and len(roles) == 2 else None,
-                                symmetric=text.get("symmetric"), annotations=list(text.get("annotations") or []),
-                                meta=meta))  # fmt: skip
+        items.append(derived_item(sid, seq, seq_doc, text, meta))
         splits[sid] = manifest["sequences"][sid].get("split", "train")
         if progress:
             fe = rec["errors"]["final"]

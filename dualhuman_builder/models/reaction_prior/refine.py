@@ -182,8 +182,7 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
     with the noise source and the figures before and after (against the input export's reactor).
     """
     from dualhuman_builder.export.files import read_manifest
-    from dualhuman_builder.export.items import ExportItem
-    from dualhuman_builder.models.derived import write_derived_export
+    from dualhuman_builder.models.derived import derived_item, write_derived_export
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
     from dualhuman_builder.models.training import load_run
@@ -265,12 +264,7 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
         per_seq[sid] = rec
         meta = dict(seq_doc.get("meta") or {})
         meta["refinement"] = {**rec, "refined": how["refined"], "carried_over": how["carried_over"]}
-        roles = text.get("roles")
-        items.append(ExportItem(sid, seq, subjects=tuple(seq_doc.get("subjects") or ("", ""))[:2],
-                                labels=list(text.get("labels", [])), texts=list(text.get("texts", [])),
-                                roles=tuple(roles) if isinstance(roles, list) and len(roles) == 2 else None,
-                                symmetric=text.get("symmetric"), annotations=list(text.get("annotations") or []),
-                                meta=meta))  # fmt: skip
+        items.append(derived_item(sid, seq, seq_doc, text, meta))
         splits[sid] = info.get("split", "train")
         if progress:
             say(f"[{k}/{len(manifest['sequences'])}] {sid}: {nw} windows, joint error "
