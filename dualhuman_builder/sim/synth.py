@@ -30,8 +30,8 @@ actors, and makes the takes:
   same settings is not rendered again.
 
 Why days: the trackers' mounts are the studio's, strapped once per day; a take synced without a
-calibration take knows the trackers' shared offset, and the body's root with it, only to about
-14 mm, which the sync reports as a warning and the quality gates flag. A day's pair keeps its order
+calibration take knows the trackers' shared offset, and the body's root with it, only as well
+as the trackers' site prior allows, which the sync reports as a warning and the quality gates flag. A day's pair keeps its order
 (the simulated devices draw each tracker's mount per actor slot), so a ``dance_turn`` is drawn only in
 a day whose first actor is the taller (the leader turns the partner under the joined hands).
 
