@@ -70,6 +70,11 @@ class ModelSpec(Protocol):
         """Figures on held-out batches (module in eval mode, no grad), logged and written by ``evaluate``."""
 
 
+#: Optional on a spec: a tuple of config keys naming files the fresh module's weights start from
+#: (the pose estimator's local ``backbone_weights``). A module about to take a checkpoint's weights
+#: is built with them set to None, so a run folder loads after those files moved or went away.
+INIT_KEYS = "init_keys"
+
 #: Optional on a spec: ``make_dataset(export_dir, split, config, seed)`` returns the dataset the loop
 #: draws batches from (``__len__``, ``batch(indices) -> dict``, ``set_epoch(epoch)``), for a model that
 #: reads something else than windows of motion (the pose estimator reads images). Without it the loop

@@ -37,7 +37,7 @@ import torch
 
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.models import runs
-from dualhuman_builder.models.base import ModelSpec, Phase, get_model
+from dualhuman_builder.models.base import INIT_KEYS, ModelSpec, Phase, get_model
 from dualhuman_builder.models.data import InteractionWindows
 
 #: Defaults of the data options a model's config may set.
@@ -350,7 +350,7 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         runs.write_json(run_dir / runs.CONFIG, doc)
 
     _seed_all(int(seed))
-    module = spec.build(config).to(dev)
+    module = spec.build(config if start is None else _checkpoint_config(spec, config)).to(dev)
     ckpt = None
     if start is not None:
         ckpt, weights, opt_tensors = runs.load_checkpoint(run_dir, dev)
@@ -491,6 +491,12 @@ def _finish(run_dir: Path, doc: dict[str, Any], total: int, global_step: int, t_
 
 
 # ------------------------------------------------------------------ load and evaluate
+def _checkpoint_config(spec: ModelSpec, config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` for a module that takes a checkpoint's weights: the spec's ``init_keys``
+    (:data:`~dualhuman_builder.models.base.INIT_KEYS`) set to None, as the checkpoint holds those weights."""
+    return {**config, **{k: None for k in getattr(spec, INIT_KEYS, ())}}
+
+
 def load_run(run_dir: str | Path, device: str = "cpu") -> tuple[ModelSpec, dict[str, Any], torch.nn.Module]:
     """``(spec, config, module)`` of a run folder: the module with its last checkpoint's weights, in
     eval mode on ``device``."""
@@ -502,7 +508,7 @@ def load_run(run_dir: str | Path, device: str = "cpu") -> tuple[ModelSpec, dict[
         raise DualhumanError(f"{run_dir}/config.json has no model config", fix="pass a run folder `dualhuman train` wrote")
     dev = resolve_device(device)
     _seed_all(int(doc.get("train", {}).get("seed", 0)))
-    module = spec.build(config).to(dev)
+    module = spec.build(_checkpoint_config(spec, config)).to(dev)
     _, weights, _ = runs.load_checkpoint(run_dir, dev, optimizer=False)
     module.load_state_dict(weights)
     module.eval()

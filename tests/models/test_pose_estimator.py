@@ -283,8 +283,12 @@ def test_training_on_a_tiny_render_export_lowers_the_loss_and_resumes_to_identic
 
     from dualhuman_builder.models import training
 
+    from safetensors.torch import save_file
+
     export = make_tiny_render_export(tmp_path)
-    over = {**TINY, "steps": 16, "lr": 3e-3}
+    weights = tmp_path / "backbone.safetensors"  # a user's local backbone: read at the start only
+    save_file(_build()[1].backbone.state_dict(), str(weights))
+    over = {**TINY, "steps": 16, "lr": 3e-3, "backbone_weights": str(weights)}
     kw = {"config_overrides": over, "batch_size": 8, "progress": False, "tensorboard": False}
     run = training.train("pose-estimator", export, tmp_path / "run", **kw)
     losses = [json.loads(line)["loss"] for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -292,6 +296,7 @@ def test_training_on_a_tiny_render_export_lowers_the_loss_and_resumes_to_identic
     assert np.mean(losses[-4:]) < 0.8 * np.mean(losses[:2]), losses
     resumed = tmp_path / "resumed"
     training.train("pose-estimator", export, resumed, max_steps=7, **kw)
+    weights.unlink()  # the run and its resumption need only their checkpoints now
     training.train("pose-estimator", export, resumed, **kw)
     _, config, a = training.load_run(run)
     _, _, b = training.load_run(resumed)

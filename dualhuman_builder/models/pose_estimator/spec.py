@@ -107,6 +107,7 @@ class PoseEstimatorSpec:
     """:class:`~dualhuman_builder.models.base.ModelSpec` of the pose estimator (module docstring)."""
 
     name = NAME
+    init_keys = ("backbone_weights",)  # a run's checkpoint holds the backbone: the file is read once, at the start
     about = ("the Dual-Human paper's two-person pose estimator: an image backbone and a decoder-only Transformer over "
              "Pose, Transl, Prob and Track queries with interaction-aware attention, trained on rendered exports")
 
