@@ -43,11 +43,16 @@ def describe_error(e: BaseException) -> str:
 
 def run_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
     """Run ``task`` (``take``, ``stage``, ``options``: a :class:`~dualhuman_builder.batch.plan.RunOptions`
-    as a dict) in the workspace at ``root``. Returns ``{"ok", "ran", "error", "trace", "seconds"}``;
+    as a dict) in the workspace at ``root``; a task of ``kind`` ``synth-ground-truth`` makes one
+    synthetic take's files instead (:func:`~dualhuman_builder.sim.synth.ground_truth_task`). Returns ``{"ok", "ran", "error", "trace", "seconds"}``;
     ``ran`` is False when the stage was up to date. Never raises for a failed stage."""
     from dualhuman_builder.batch.plan import RunOptions, stage_call
     from dualhuman_builder.workspace import Workspace
 
+    from dualhuman_builder.sim.synth import GROUND_TRUTH_TASK, ground_truth_task
+
+    if task.get("kind") == GROUND_TRUTH_TASK:  # files only: no stage, no catalog
+        return ground_truth_task(root, task, log)
     t0 = time.perf_counter()
     opts = task["options"]
     options = RunOptions(**{**opts, "takes": tuple(opts["takes"]) if opts.get("takes") else None,

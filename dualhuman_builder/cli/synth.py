@@ -61,11 +61,14 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
 @click.option("--render-views", type=int, default=4, show_default=True, help="With --render: cameras on the ring.")
 @click.option("--render-every", type=int, default=5, show_default=True, help="With --render: render every N-th frame.")
 @click.option("--render-spp", type=int, default=4, show_default=True, help="With --render: samples per pixel.")
+@click.option("--jobs", type=click.IntRange(min=1), default=None,
+              help="With --path ground-truth: worker processes making scenes and renders at once. Default: one per CPU "
+                   "within the available memory at 2 GiB each (1 makes them in this process).")
 @click.option("--plan-only", is_flag=True, help="Print the plan's summary and write WS/synth.json; make nothing.")
 def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float, long_share: float,
           long_duration: float, takes_per_day: int, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
           export_dir: Path | None, include_flagged: bool, speed: float, render: bool, render_size: int,
-          render_views: int, render_every: int, render_spp: int, plan_only: bool):  # fmt: skip
+          render_views: int, render_every: int, render_spp: int, jobs: int | None, plan_only: bool):  # fmt: skip
     """Generate a varied synthetic dataset of TAKES simulated takes into WORKSPACE (created if missing).
 
     The plan (WORKSPACE/synth.json) is drawn from the seed: an actor pool over statures, genders
@@ -109,15 +112,23 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
         console.print(f"plan written to {workspace / 'synth.json'}", highlight=False)
         return
 
+    if jobs is None:
+        from dualhuman_builder.batch.executors import default_workers
+
+        jobs = default_workers() if way == "ground-truth" else 1
+    elif way != "ground-truth" and jobs > 1:
+        raise click.UsageError("--jobs makes ground-truth takes at once; the full path's stages run at once in "
+                               "`dualhuman run WS --workers N`")  # fmt: skip
+
     def say(line: str) -> None:
         console.print(escape(line), highlight=False, soft_wrap=True)
 
     if console.is_terminal:
         with console.status("planning...") as spinner:
-            result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged,
+            result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged, jobs=jobs,
                                     log=lambda m: spinner.update(escape(str(m)[:100])), progress=say)  # fmt: skip
     else:
-        result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged,
+        result = make_synthetic(workspace, options, path=way, export=export_dir, include_flagged=include_flagged, jobs=jobs,
                                 log=lambda m: None, progress=say)  # fmt: skip
     days = f" (and {len(result.calibrations)} studio days' calibration takes)" if result.calibrations else ""
     console.print(f"{len(result.made)} made, {len(result.skipped)} made before, {len(result.failed)} failed{days} "

@@ -93,6 +93,8 @@ TAKES_PER_DAY = 6
 MAX_TAKES = 100_000
 #: Contents of the export of the ground-truth path (renders too with ``SynthOptions.render``).
 GROUND_TRUTH_EXPECT = ("motion", "contacts", "text")
+#: A worker task (:mod:`dualhuman_builder.batch.worker`) making one take's ground-truth files (:func:`ground_truth_task`).
+GROUND_TRUTH_TASK = "synth-ground-truth"
 #: Where the ground-truth path keeps its renders (under the workspace), and its record of a finished render.
 RENDERS_DIR, RENDER_RECORD = "synth/renders", ".synth-render.json"
 #: The ground-truth path's camera ring: radius (m) around the pair's mean pelvis, camera height (m)
@@ -418,11 +420,12 @@ def _describe(t: dict) -> str:
 
 def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = "full",
                    export: str | Path | None = None, include_flagged: bool = False, model=None,
-                   log: Callable[[str], None] = print,
+                   jobs: int = 1, log: Callable[[str], None] = print,
                    progress: Callable[[str], None] | None = None) -> SynthResult:  # fmt: skip
     """Plan (:func:`plan_synthetic`) and make a synthetic dataset in ``workspace`` (created if
     missing); see the module docstring for the two ``path`` values. ``export``: the export folder
     (required for ``ground-truth``; with ``full``, the takes fitted so far are exported).
+    ``jobs`` (ground-truth path): worker processes making scenes and renders at once (1: in this process).
     ``progress`` gets one line per take (default: ``log``), ``log`` the details. A take whose scene
     meets no quality contract is listed in ``failed`` and the others go on. Raises
     :class:`SynthError` for invalid options or when ``WS/synth.json`` holds another plan."""
@@ -434,6 +437,8 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
     say = progress or log
     if path not in PATHS:
         raise SynthError(f"unknown path {path!r}", fix=f"choose one of {', '.join(PATHS)}")
+    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
+        raise SynthError(f"jobs {jobs!r} must be a whole number of worker processes, at least 1", fix="pass --jobs 1 or more")
     if path == "ground-truth" and export is None:
         raise SynthError("the ground-truth path writes an export: it needs its folder",
                          fix="pass --export OUT (a new or empty folder, or an earlier export to update)")  # fmt: skip
@@ -462,8 +467,13 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
                 result.manifest = export_fitted(ws, export, plan, include_flagged=include_flagged, log=log)
         else:
             items = []
-            for k, t in enumerate(plan["takes"], 1):
-                item = _make_ground_truth(ws, t, actors, model, log, say, f"[{k}/{n}]", result, render=render)
+            if jobs > 1:
+                made = _ground_truth_in_workers(ws, plan, actors, jobs, render, log)
+            else:
+                made = ((t, ground_truth_files(ws.root, t, [actors[a][1] for a in t["actors"]], model, log, render))
+                        for t in plan["takes"])  # fmt: skip
+            for k, (t, m) in enumerate(made, 1):
+                item = _ground_truth_item(ws, t, m, say, f"[{k}/{n}]", result, render=render)
                 if item is not None:
                     items.append(item)
             result.manifest = _export_ground_truth(ws, items, export, plan, result, log, render=render)
@@ -554,22 +564,22 @@ def _annotate_from_scene(ws, take: str, t: dict) -> None:
     ws.annotate([check_annotation(ann, load_vocabulary(ws.root), ws.take(take).actors)])
 
 
-def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str, result: SynthResult,
-                       render: dict | None = None):  # fmt: skip
-    """Planned take ``t``'s scene (generated, or read from ``WS/synth/scenes/TAKE.npz`` when made
-    before with the same parameters) as an :class:`~dualhuman_builder.export.items.ExportItem`
-    with its contacts, and its render with ``render`` (:meth:`SynthOptions.render_settings`,
-    :func:`_render_ground_truth`); None when no scene met the quality contract."""
-    from dualhuman_builder.contacts.compute import compute_contacts
+def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None, log: Callable[[str], None] = print,
+                       render: dict | None = None) -> dict[str, Any]:  # fmt: skip
+    """Make planned take ``t``'s files of the ground-truth path under the workspace ``root``: its
+    scene (``WS/synth/scenes/TAKE-gN.npz``, kept when made before with the same parameters) and,
+    with ``render``, its render (:func:`_render_ground_truth`). ``shapes``: the pair's anny
+    phenotypes, in the take's actor order. Files only, no catalog: so that worker processes can
+    make many takes at once (:func:`make_synthetic` with ``jobs``). Returns ``{"take", "generated"
+    (bool), "scene_s", "render_s"}`` (``render_s`` None when not rendered now), or with ``failed``
+    (the reason) when no draw met the scene's quality contract or the scene refused its parameters."""
     from dualhuman_builder.errors import FormatError
-    from dualhuman_builder.export.items import ExportItem
     from dualhuman_builder.sim.generate import generate_scene
     from dualhuman_builder.sim.scenes import GENERATOR_VERSION, Scene, SceneParams, _params_dict
 
-    take = t["take"]
-    params = SceneParams(shapes=(actors[t["actors"][0]][1], actors[t["actors"][1]][1]), names=tuple(t["actors"]),
-                         **_scene_params(t))  # fmt: skip
-    file = ws.root / SCENES_DIR / f"{take}-g{GENERATOR_VERSION}.npz"  # another generator makes other scenes
+    take, root = t["take"], Path(root)
+    params = SceneParams(shapes=(dict(shapes[0]), dict(shapes[1])), names=tuple(t["actors"]), **_scene_params(t))
+    file = root / SCENES_DIR / f"{take}-g{GENERATOR_VERSION}.npz"  # another generator makes other scenes
     t1 = time.perf_counter()
     scene = None
     if file.exists():
@@ -579,23 +589,99 @@ def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str,
             scene = None
         if scene is not None and _params_dict(scene.params) != json.loads(json.dumps(_params_dict(params))):
             scene = None
-    made_before = scene is not None
+    out: dict[str, Any] = {"take": take, "generated": scene is None, "scene_s": 0.0, "render_s": None}
     if scene is None:
+        if model is None:
+            from dualhuman_builder.body.model import get_body_model
+
+            model = get_body_model()
         try:
             scene = generate_scene(params, model=model, log=log)
         except ValueError as e:  # no draw met the contract (SceneContractError), or the scene refused its parameters
-            result.failed[take] = getattr(e, "message", str(e))
-            say(f"{counter} {_describe(t)}: FAILED: {result.failed[take]}")
-            return None
+            return {**out, "failed": getattr(e, "message", str(e))}
+        file.parent.mkdir(parents=True, exist_ok=True)
         scene.save(file)
-    contacts = compute_contacts(scene.sequence, workers=1)
-    seq = Scene.load(file).sequence  # without cached vertices: only the poses stay in memory until the export
-    render_dir, rendered, made_s = None, "", time.perf_counter() - t1
+    out["scene_s"] = time.perf_counter() - t1
     if render is not None:
-        render_dir, fresh = _render_ground_truth(ws, t, seq, render, log)
+        seq = Scene.load(file).sequence
+        out["render_s"] = _render_ground_truth(root, t, seq, render, log)[1]
+    return out
+
+
+def ground_truth_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
+    """A worker's run of :func:`ground_truth_files` (``task``: ``t``, ``shapes``, ``render``), answered as
+    :func:`~dualhuman_builder.batch.worker.run_task` answers (``ok``, ``error``, ``seconds``) plus its result."""
+    from dualhuman_builder.batch.worker import describe_error
+
+    t0 = time.perf_counter()
+    try:
+        made = ground_truth_files(root, task["t"], task["shapes"], log=log, render=task.get("render"))
+    except Exception as e:  # noqa: BLE001 - the driver reports the take failed and goes on
+        import traceback
+
+        return {"ok": False, "ran": True, "error": describe_error(e), "trace": "".join(traceback.format_exception(e)[-6:]),
+                "seconds": time.perf_counter() - t0}  # fmt: skip
+    return {"ok": True, "ran": True, "error": None, "trace": None, "seconds": time.perf_counter() - t0, "made": made}
+
+
+def _ground_truth_in_workers(ws, plan: dict, actors: dict, jobs: int, render: dict | None, log):
+    """Yield ``(t, made)`` for every planned take in plan order, ``made`` as :func:`ground_truth_files`
+    returns it, made by ``jobs`` worker processes (:class:`~dualhuman_builder.batch.executors.LocalExecutor`,
+    their standard error in ``WS/synth/workers.log``, their log lines to ``log``). A worker that dies or raises makes the take
+    ``failed`` with the reason; the workers are stopped on leaving (also on Ctrl-C)."""
+    from dualhuman_builder.batch.executors import LocalExecutor
+
+    takes = plan["takes"]
+    (ws.root / "synth").mkdir(parents=True, exist_ok=True)
+    ex = LocalExecutor(ws.root, jobs, ws.root / "synth" / "workers.log")
+    answers: dict[int, dict] = {}
+    nxt = 0
+    try:
+        for k, t in enumerate(takes):
+            while k not in answers:
+                while nxt < len(takes) and ex.free() > 0:
+                    u = takes[nxt]
+                    ex.submit({"id": nxt, "kind": GROUND_TRUTH_TASK, "t": u, "render": render,
+                               "shapes": [actors[a][1] for a in u["actors"]]})  # fmt: skip
+                    nxt += 1
+                for ev in ex.poll(1.0):
+                    if ev[0] == "result":
+                        a = ev[2]
+                        answers[ev[1]] = a["made"] if a.get("ok") else \
+                            {"take": takes[ev[1]]["take"], "failed": a.get("error") or "the worker failed"}
+                    elif ev[0] == "lost":
+                        answers[ev[1]] = {"take": takes[ev[1]]["take"], "failed": ev[2]}
+                    elif ev[0] == "log":
+                        log(f"{takes[ev[1]]['take']}: {ev[2]}")
+            yield t, answers.pop(k)
+    finally:
+        ex.close()
+
+
+def _ground_truth_item(ws, t: dict, made: dict, say, counter: str, result: SynthResult, render: dict | None = None):
+    """Planned take ``t``'s :class:`~dualhuman_builder.export.items.ExportItem` from its files
+    (``made``: :func:`ground_truth_files`'s answer), with its contacts computed by the contacts
+    stage's own code; None (the take in ``result.failed``) when its scene was not made."""
+    from dualhuman_builder.contacts.compute import compute_contacts
+    from dualhuman_builder.export.items import ExportItem
+    from dualhuman_builder.sim.scenes import GENERATOR_VERSION, Scene
+
+    take = t["take"]
+    if "failed" in made:
+        result.failed[take] = made["failed"]
+        say(f"{counter} {_describe(t)}: FAILED: {made['failed']}")
+        return None
+    file = ws.root / SCENES_DIR / f"{take}-g{GENERATOR_VERSION}.npz"
+    contacts = compute_contacts(Scene.load(file).sequence, workers=1)
+    seq = Scene.load(file).sequence  # without the vertices the contacts cached: only poses stay in memory until the export
+    render_dir, rendered = None, ""
+    if render is not None:
+        render_dir = ws.root / RENDERS_DIR / f"{take}-g{GENERATOR_VERSION}"
+        fresh = made.get("render_s")
         rendered = f", rendered in {fresh:.1f} s" if fresh is not None else ", rendered before"
-    (result.skipped if made_before else result.made).append(take)
-    say(f"{counter} {_describe(t)}: " + ("made before" if made_before else f"made in {made_s:.1f} s") + rendered)
+    (result.made if made["generated"] else result.skipped).append(take)
+    say(f"{counter} {_describe(t)}: " + (f"made in {made['scene_s']:.1f} s" if made["generated"] else "made before")
+        + rendered)
     roles = ("actor", "reactor") if t["type"] in ONE_SIDED else None
     drawn = {k: t[k] for k in ("type", "seed", "tempo", "approach_distance_m", "duration_s", "preset")}
     meta = {"source": "ground-truth", "take": take, "synth": drawn}
@@ -605,7 +691,7 @@ def _make_ground_truth(ws, t: dict, actors: dict, model, log, say, counter: str,
                       render_dir=render_dir)  # fmt: skip
 
 
-def _render_ground_truth(ws, t: dict, seq, render: dict, log) -> tuple[Path, float | None]:
+def _render_ground_truth(root: Path, t: dict, seq, render: dict, log) -> tuple[Path, float | None]:
     """Render planned take ``t``'s ground-truth ``seq`` into ``WS/synth/renders/TAKE-gN`` with the
     settings ``render`` (:meth:`SynthOptions.render_settings`): a ring of ``views`` cameras around the
     pair (:func:`~dualhuman_builder.render.stage.stage_cameras`, jittered with the take's scene seed),
@@ -618,7 +704,7 @@ def _render_ground_truth(ws, t: dict, seq, render: dict, log) -> tuple[Path, flo
     from dualhuman_builder.render.stage import render_sequence, select_frames, stage_cameras
     from dualhuman_builder.sim.scenes import GENERATOR_VERSION
 
-    out = ws.root / RENDERS_DIR / f"{t['take']}-g{GENERATOR_VERSION}"
+    out = Path(root) / RENDERS_DIR / f"{t['take']}-g{GENERATOR_VERSION}"
     h = hashlib.sha256(json.dumps({**render, "jitter_seed": int(t["seed"])}, sort_keys=True).encode())
     for a in seq.actors:
         for arr in (a.pose, a.transl, a.shape):
