@@ -131,6 +131,33 @@ def _mean_std(values: list[dict]) -> dict:
     return out
 
 
+def _train_and_score(job: tuple, seqs: list | None = None) -> dict:
+    """Train one ``(variant, seed)`` and score it (refinement, generation, speed); a process of its own with ``--jobs``."""
+    from dualhuman_builder.models.training import load_run, train
+
+    name, seed, c = job
+    if c["threads"] > 0:
+        torch.set_num_threads(c["threads"])
+    export, window = Path(c["export"]), c["window"]
+    seqs = seqs if seqs is not None else _test_sequences(export, "test")
+    run = Path(c["work"]) / f"{name}-s{seed}"
+    t = time.perf_counter()
+    train("reaction-prior", export, run, config_overrides={**c["overrides"], **VARIANTS[name]},
+          steps_scale=c["steps_scale"], batch_size=c["batch_size"], seed=seed, device=c["device"],
+          progress=False)  # fmt: skip
+    train_s = time.perf_counter() - t
+    module = load_run(run, device=c["device"])[2]
+    summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+    t = time.perf_counter()
+    refine = _refinement(module, seqs, module.config, window, c["iterations"], c["lambda_prior"], c["device"])
+    rec = {"refine": refine, "refine_s": time.perf_counter() - t,
+           "generation": _generation(module, seqs, window, c["device"]), "train_s": train_s,
+           "windows_per_s": summary.get("windows_per_s"), "loader_share": summary.get("loader_share")}  # fmt: skip
+    print(f"{name} seed {seed}: MPJPE {refine['before']['mpjpe_mm']:.1f} -> {refine['after']['mpjpe_mm']:.1f} mm, "
+          f"trained in {train_s:.0f} s", flush=True)  # fmt: skip
+    return rec
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--export", type=Path, help="a dataset export (e.g. of `dualhuman synth`, >= 500 sequences)")
@@ -142,7 +169,8 @@ def main() -> None:
     ap.add_argument("--lambda-prior", type=float, default=0.01)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="config override for every variant")
-    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default; 1 with --jobs)")
+    ap.add_argument("--jobs", type=int, default=1, help="trainings at once, each in its own process")
     ap.add_argument("--quick", action="store_true", help="a tiny export, a tiny model, a few steps, one seed")
     ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
     ap.add_argument("--out", type=Path, default=None)
@@ -150,7 +178,6 @@ def main() -> None:
 
     from dualhuman_builder.export.verify import verify_export
     from dualhuman_builder.models.reaction_prior.refine import refine_export
-    from dualhuman_builder.models.training import load_run, train
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -171,27 +198,25 @@ def main() -> None:
     variants = [v for v in args.variants.split(",") if v]
     figures: dict = {"variants": {}, "runs": {}}
     t0 = time.perf_counter()
+    jobs = [(name, seed) for name in variants for seed in range(args.seeds)]
+    common = {"export": str(export), "work": str(work), "overrides": overrides, "window": window,
+              "steps_scale": args.steps_scale, "batch_size": args.batch_size, "device": args.device,
+              "iterations": args.iterations, "lambda_prior": args.lambda_prior,
+              "threads": args.threads if args.jobs == 1 else max(1, args.threads)}  # fmt: skip
+    if args.jobs > 1:  # one training per process, each on its own thread(s); the figures do not depend on it
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            recs = dict(zip(jobs, pool.map(_train_and_score, [(n, s, common) for n, s in jobs])))
+    else:
+        recs = {(n, s): _train_and_score((n, s, common), seqs) for n, s in jobs}
     for name in variants:
         per_seed = []
         for seed in range(args.seeds):
-            run = work / f"{name}-s{seed}"
-            t = time.perf_counter()
-            train("reaction-prior", export, run, config_overrides={**overrides, **VARIANTS[name]},
-                  steps_scale=args.steps_scale, batch_size=args.batch_size, seed=seed, device=args.device,
-                  progress=False)  # fmt: skip
-            train_s = time.perf_counter() - t
-            module = load_run(run, device=args.device)[2]
-            summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
-            refine = _refinement(module, seqs, module.config, window, args.iterations, args.lambda_prior, args.device)
-            rec = {"refine": refine,
-                   "generation": _generation(module, seqs, window, args.device), "train_s": train_s,
-                   "windows_per_s": summary.get("windows_per_s"),
-                   "loader_share": summary.get("loader_share")}  # fmt: skip
+            rec = recs[(name, seed)]
             figures["runs"][f"{name}-s{seed}"] = rec
-            per_seq = {k: v for k, v in rec.items() if v is not None}
-            per_seed.append(per_seq)
-            print(f"{name} seed {seed}: MPJPE {rec['refine']['before']['mpjpe_mm']:.1f} -> "
-                  f"{rec['refine']['after']['mpjpe_mm']:.1f} mm, trained in {train_s:.0f} s", flush=True)  # fmt: skip
+            per_seed.append({k: v for k, v in rec.items() if v is not None})
         figures["variants"][name] = _mean_std(per_seed)
     if "full" in variants:
         full_run = work / "full-s0"
