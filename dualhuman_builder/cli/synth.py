@@ -96,7 +96,7 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
                            render=render, render_size=render_size, render_views=render_views, render_every=render_every,
                            render_spp=render_spp)  # fmt: skip
     plan = plan_synthetic(options)
-    for line in describe_plan(plan):
+    for line in describe_plan(plan, way):
         console.print(escape(line), highlight=False)
     settings = options.render_settings()
     if settings is not None:

@@ -794,8 +794,9 @@ def export_fitted(ws, export, plan: dict, *, include_flagged: bool = False, log:
     return manifest
 
 
-def describe_plan(plan: dict) -> list[str]:
-    """A few lines about a plan: takes per type, preset and split, the actor pool."""
+def describe_plan(plan: dict, path: str = "full") -> list[str]:
+    """A few lines about a plan: takes per type, preset and studio days (``path`` full only: the
+    ground-truth path has no devices), split, the actor pool."""
     takes = plan["takes"]
     by_type: dict[str, int] = {}
     for t in takes:
@@ -803,11 +804,12 @@ def describe_plan(plan: dict) -> list[str]:
     presets = {p: sum(t["preset"] == p for t in takes) for p in ("ideal", "realistic")}
     g = {s: sum(a["gender"] == s for a in plan["actors"]) for s in ("female", "male")}
     stat = [a["stature_m"] for a in plan["actors"]]
-    lines = [f"{len(takes)} takes: " + ", ".join(f"{k} {v}" for k, v in sorted(by_type.items())),
-             f"devices: {presets['ideal']} ideal, {presets['realistic']} realistic, over {len(plan['days'])} studio "
-             f"day(s), each with its calibration take",
-             f"actors: {len(plan['actors'])} ({g['female']} female, {g['male']} male), "
-             f"{min(stat):.2f}-{max(stat):.2f} m"]  # fmt: skip
+    lines = [f"{len(takes)} takes: " + ", ".join(f"{k} {v}" for k, v in sorted(by_type.items()))]
+    if path == "full":
+        lines.append(f"devices: {presets['ideal']} ideal, {presets['realistic']} realistic, over {len(plan['days'])} "
+                     f"studio day(s), each with its calibration take")  # fmt: skip
+    lines.append(f"actors: {len(plan['actors'])} ({g['female']} female, {g['male']} male), "
+                 f"{min(stat):.2f}-{max(stat):.2f} m")  # fmt: skip
     if plan["split"]:
         s = plan["split"]
         lines.append(f"split: {s['train']} train, {s['test']} test (held out: actors {s['held_out_actors'] or 'none'}, "

@@ -228,6 +228,9 @@ def test_cli_plans_resumes_and_reports_errors(ground_truth):
     assert r.exit_code == 0, r.output
     assert r.output.count(": made before") == 2 and "0 made, 2 made before" in r.output
     assert "1 train, 1 test" in r.output and "source ground-truth" in r.output
+    assert "studio day" not in r.output  # no devices on the ground-truth path
+    r = CliRunner().invoke(main, [*args, "--plan-only"])
+    assert r.exit_code == 0 and "over 1 studio day(s)" in r.output
     r = CliRunner().invoke(main, [*args[:-1], "handshake", "--plan-only"])
     assert r.exit_code == 2 and "other arguments" in r.output and "hold_out_types" in r.output
     r = CliRunner().invoke(main, ["synth", "--help"], terminal_width=80)
