@@ -4,7 +4,8 @@ WebDataset convention: plain (uncompressed) POSIX tar files; one sample per sequ
 members are consecutive and named ``<key>.<ext>``, where the key is the ``seq_id`` (which has no
 dots) and the extension names the file: ``sequence.json``, ``motion.npz``, ``contacts.npz``,
 ``contact_events.json``, ``text.json``, ``cameras.json``, ``keypoints.npz`` (the render's 2D
-keypoints). Images stay in the folder layout. Shards are named ``<split>-000000.tar``, ... (the
+keypoints), ``targets.npz`` (the image models' targets per camera and rendered frame). Images stay
+in the folder layout. Shards are named ``<split>-000000.tar``, ... (the
 brace pattern ``<split>-{000000..NNNNNN}.tar`` of ``webdataset``) and written byte-deterministically
 (mtime 0, uid 0, mode 0644); a new shard starts when the next sample would push a shard past
 ``max_bytes`` (a single larger sample gets a shard of its own). Next to them: ``<split>.json`` (the
@@ -49,6 +50,7 @@ SAMPLE_FILES = (
     ("text.json", "text.json"),
     ("cameras.json", "cameras.json"),
     ("renders/keypoints.npz", "keypoints.npz"),
+    ("renders/targets.npz", "targets.npz"),
 )
 _BLOCK = 512
 _RECORD = 20 * _BLOCK

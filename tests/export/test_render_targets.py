@@ -85,6 +85,14 @@ def test_targets_agree_with_motion_cameras_keypoints_and_masks(export):
         assert 0.0 < t["prob"].mean() < 1.0  # some joints hidden, most seen
 
 
+def test_shards_carry_the_targets(export, tmp_path):
+    from dualhuman_builder.export.shards import iter_shards, write_shards
+
+    samples = list(iter_shards(write_shards(export, tmp_path / "shards", split="all")))
+    assert samples and all(s["targets.npz"] == (export / "sequences" / s["__key__"] / "renders/targets.npz").read_bytes()
+                           for s in samples)  # fmt: skip
+
+
 @given(st.floats(-2, 2), st.floats(-2, 2), st.floats(0.2, 30), st.floats(20, 2000), st.floats(-50, 300))
 def test_normalised_root_inverts(x, y, z, f, cx):
     K = np.array([[f, 0.0, cx], [0.0, f, 0.7 * cx], [0.0, 0.0, 1.0]])
