@@ -7,14 +7,15 @@ the quality gates flag on the set.
 The takes (``--takes`` short takes over ``--types``, no long takes, ``--preset`` device errors,
 ``--fps``) are made once with ``dualhuman synth`` (the full path: each studio day's calibration
 take, then scene, devices and capture; timed apart) into a base workspace; each executor runs
-``dualhuman run --until UNTIL`` on a fresh copy of it. The local executor runs once more after Ray
-(the first run also warms the machine's file caches); the overhead is against the faster local run,
-and each run records the stage runs it left done (``stages_done``), so the runs' work can be
-compared. The full path's takes per hour count making the takes and the faster local run; a take
-whose scene meets no quality contract in its draws is counted (``failed_takes``) and the rest go on,
-as ``synth`` does. The
-ground-truth path (``dualhuman synth --path ground-truth``, scene straight to a verified export) runs
-on the same plan arguments with one pair per take. CPU utilisation of the local executor is the CPU
+``dualhuman run --until UNTIL`` on a fresh copy of it, for the takes synth made. The local executor
+runs once more after Ray (the first run also warms the machine's file caches); the overhead is
+against the faster local run, and each run records the stage runs it left done (``stages_done``),
+so the runs' work can be compared. A take whose scene meets no quality contract in its draws is
+counted (``failed_takes``) and left out of the runs, as ``synth`` goes on without it; takes per
+hour count the takes delivered (``takes``). The full path's takes per hour count making the takes
+and the faster local run. The ground-truth path (``dualhuman synth --path ground-truth``, scene
+straight to a verified export, ``--gt-jobs`` worker processes) runs on the same plan arguments with
+one pair per take. CPU utilisation of the local executor is the CPU
 time of the run's own processes (the driver and its workers) over the wall time of all cores, so
 other load on the machine can only lower it; ``system_busy`` is the share of all CPUs' time not idle
 over the run (/proc/stat), for every executor; peak memory per worker is the largest VmHWM of the local workers
@@ -22,6 +23,7 @@ over the run (/proc/stat), for every executor; peak memory per worker is the lar
 
     python benchmarks/bench_run.py --takes 24
     python benchmarks/bench_run.py --takes 2 --out /tmp/run.json     # a quick check
+    python benchmarks/bench_run.py --takes 24 --keep /tmp/run-takes   # and keep the made takes
 """
 
 from __future__ import annotations
@@ -84,9 +86,21 @@ class Sampler:
         self.thread.join()
 
 
-def timed_run(ws: Path, args, executor: str, address: str | None, marker: str) -> dict:
+def failed_lines(stdout: str) -> list[str]:
+    """The takes ``dualhuman synth`` reported ``FAILED`` (no scene met the quality contract), in order."""
+    import re
+
+    names = (re.search(r"\b([SC]\d{3,})\b", ln.split(": FAILED: ")[0]) for ln in stdout.splitlines() if ": FAILED: " in ln)
+    return [m.group(1) for m in names if m]
+
+
+def timed_run(ws: Path, args, executor: str, address: str | None, marker: str, takes: list[str]) -> dict:
+    """``dualhuman run`` of ``takes`` (the ones synth made: a take whose scene failed is not run again,
+    its calibration take comes with it), timed, with CPU and memory figures."""
     cmd = [sys.executable, "-c", "from dualhuman_builder.cli import main, run; main()", "run", str(ws),
            "--fps", str(args.fps), "--executor", executor]  # fmt: skip
+    for t in takes:
+        cmd += ["--take", t]
     if args.until:
         cmd += ["--until", args.until]
     if address:
@@ -108,7 +122,8 @@ def timed_run(ws: Path, args, executor: str, address: str | None, marker: str) -
     with Workspace.open(ws, readonly=True) as w:  # the work each run did, to compare: stage runs done
         done = sum(1 for t in w.takes() for s in ("sync", "fuse", "fit", "contacts", "render", "sheet")
                    if (rec := w.stage_record(s, t)) is not None and rec.get("status") == "done")  # fmt: skip
-    return {"seconds": round(seconds, 2), "takes_per_hour": round(args.takes * 3600 / seconds, 1), "stages_done": done,
+    return {"seconds": round(seconds, 2), "takes": len(takes), "takes_per_hour": round(len(takes) * 3600 / seconds, 1),
+            "stages_done": done,
             "system_busy": round((b1 - b0) / max(1, t1 - t0), 3),
             # the run's own processes (the driver and the local workers it waits for; Ray's workers belong
             # to the raylet, so for Ray this counts the driver only): other load on the machine lowers it
@@ -151,8 +166,16 @@ def main() -> None:
                     "defaults costs 8 views x every frame at 512 px, see results/render.json)")
     ap.add_argument("--speed", type=float, default=8.0, help="capture speed of the simulated devices")
     ap.add_argument("--no-ray", action="store_true")
+    ap.add_argument("--gt-jobs", type=int, default=None, help="worker processes of the ground-truth path (default: "
+                    "synth's, one per CPU)")
+    ap.add_argument("--keep", type=Path, default=None, help="keep a copy of the made takes (the full path's base "
+                    "workspace) in KEEP/base")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    if args.gt_jobs is None:
+        from dualhuman_builder.batch.executors import default_workers
+
+        args.gt_jobs = default_workers()
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-run-"))
     cli = [sys.executable, "-m", "dualhuman_builder"]
@@ -164,15 +187,20 @@ def main() -> None:
         made = subprocess.run([*cli, "synth", str(base), *plan_args, "--preset", args.preset, "--speed", str(args.speed)],
                               capture_output=True, text=True, check=False)  # fmt: skip
         make_s = time.perf_counter() - t0
-        failed = made.stdout.count(": FAILED: ")  # a take whose scene met no contract: counted, the rest go on
+        failed = failed_lines(made.stdout)  # a take whose scene met no contract: counted, the rest go on
         if made.returncode not in (0, 1) or (made.returncode == 1 and not failed):
             raise SystemExit(f"synth failed ({made.returncode}):\n{made.stdout[-3000:]}\n{made.stderr[-3000:]}")
-        figures = {"make_takes": {"seconds": round(make_s, 1), "takes_per_hour": round(args.takes * 3600 / make_s, 1),
-                                  "calibration_takes": made.stdout.count("calibration take C"), "failed_takes": failed,
-                                  "failed": [ln.split(": FAILED: ")[0].strip() for ln in made.stdout.splitlines()
-                                             if ": FAILED: " in ln]}}  # fmt: skip
+        from dualhuman_builder.sim.synth import load_plan
+
+        takes = [t["take"] for t in load_plan(base)["takes"] if t["take"] not in failed and t["mounts_from"] not in failed]
+        figures = {"make_takes": {"seconds": round(make_s, 1), "takes": len(takes),
+                                  "takes_per_hour": round(len(takes) * 3600 / make_s, 1),
+                                  "calibration_takes": made.stdout.count("calibration take C"),
+                                  "failed_takes": len(failed), "failed": failed}}  # fmt: skip
+        if args.keep:
+            shutil.copytree(base, args.keep / "base", dirs_exist_ok=True)
         shutil.copytree(base, tmp / "local")
-        figures["local"] = timed_run(tmp / "local", args, "local", None, "dualhuman_builder.batch.worker")
+        figures["local"] = timed_run(tmp / "local", args, "local", None, "dualhuman_builder.batch.worker", takes)
         figures["gates"] = gate_counts(tmp / "local", cli)
         if not args.no_ray:
             shutil.copytree(base, tmp / "ray")
@@ -181,27 +209,32 @@ def main() -> None:
             subprocess.run([ray_bin, "start", "--head", "--port", str(port), "--include-dashboard=false"],
                            check=True, capture_output=True, env=RAY_ENV)  # fmt: skip
             try:
-                figures["ray"] = timed_run(tmp / "ray", args, "ray", f"127.0.0.1:{port}", "ray::")
+                figures["ray"] = timed_run(tmp / "ray", args, "ray", f"127.0.0.1:{port}", "ray::", takes)
             finally:
                 subprocess.run([ray_bin, "stop", "--force"], capture_output=True, env=RAY_ENV, check=False)
             # the local executor once more, after Ray: the first run also warms the machine's file caches
             shutil.copytree(base, tmp / "local-again")
-            figures["local_again"] = timed_run(tmp / "local-again", args, "local", None, "dualhuman_builder.batch.worker")
+            figures["local_again"] = timed_run(tmp / "local-again", args, "local", None, "dualhuman_builder.batch.worker",
+                                              takes)  # fmt: skip
             local_s = min(figures["local"]["seconds"], figures["local_again"]["seconds"])
             figures["ray_overhead"] = round(figures["ray"]["seconds"] / local_s - 1, 3)
         else:
             local_s = figures["local"]["seconds"]
         full_s = make_s + local_s
-        figures["full_path"] = {"seconds": round(full_s, 1), "takes_per_hour": round(args.takes * 3600 / full_s, 1)}
+        figures["full_path"] = {"seconds": round(full_s, 1), "takes": len(takes),
+                                "takes_per_hour": round(len(takes) * 3600 / full_s, 1)}  # fmt: skip
         t0 = time.perf_counter()
         gt = subprocess.run([*cli, "synth", str(tmp / "gt"), *plan_args, "--path", "ground-truth", "--takes-per-day", "1",
-                             "--export", str(tmp / "gt" / "export")], capture_output=True, text=True, check=False)  # fmt: skip
+                             "--export", str(tmp / "gt" / "export"), "--jobs", str(args.gt_jobs)], capture_output=True, text=True,
+                            check=False)  # fmt: skip
         gt_s = time.perf_counter() - t0
-        gt_failed = gt.stdout.count(": FAILED: ")
+        gt_failed = failed_lines(gt.stdout)
         if gt.returncode not in (0, 1) or (gt.returncode == 1 and not gt_failed):
             raise SystemExit(f"ground-truth synth failed ({gt.returncode}):\n{gt.stdout[-3000:]}\n{gt.stderr[-3000:]}")
-        figures["ground_truth_path"] = {"seconds": round(gt_s, 1), "takes_per_hour": round(args.takes * 3600 / gt_s, 1),
-                                        "failed_takes": gt_failed}
+        gt_takes = args.takes - len(gt_failed)
+        figures["ground_truth_path"] = {"seconds": round(gt_s, 1), "takes": gt_takes, "jobs": args.gt_jobs,
+                                        "takes_per_hour": round(gt_takes * 3600 / gt_s, 1),
+                                        "failed_takes": len(gt_failed), "failed": gt_failed}  # fmt: skip
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
