@@ -164,7 +164,8 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--until", default="contacts", help="last stage of the run ('' for every stage; render at its "
                     "defaults costs 8 views x every frame at 512 px, see results/render.json)")
-    ap.add_argument("--speed", type=float, default=8.0, help="capture speed of the simulated devices")
+    ap.add_argument("--speed", type=float, default=1.0, help="capture speed of the simulated devices (above 1 the host clock the "
+                    "recorder stamps runs slower than the devices', which the sync cannot align: every take is flagged)")
     ap.add_argument("--no-ray", action="store_true")
     ap.add_argument("--gt-jobs", type=int, default=None, help="worker processes of the ground-truth path (default: "
                     "synth's, one per CPU)")

@@ -31,6 +31,11 @@ ROW_KEYS = ("stage", "params_hash", "params_json", "status", "artifacts_json", "
             "error", "pid", "host", "attempt", "publish_json", "reads_json", "stale_reason")  # fmt: skip
 
 
+#: Task kinds other than a stage: ``kind`` -> "module:function(root, task, log)" answering as
+#: :func:`run_task` does (imported when first used, so the worker stands below what it runs).
+TASK_KINDS = {"synth-ground-truth": "dualhuman_builder.batch.synth:ground_truth_task"}
+
+
 def describe_error(e: BaseException) -> str:
     """One line for the summary table: the toolkit's message and fix, or the exception's type and text."""
     from dualhuman_builder.errors import DualhumanError
@@ -44,15 +49,16 @@ def describe_error(e: BaseException) -> str:
 def run_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
     """Run ``task`` (``take``, ``stage``, ``options``: a :class:`~dualhuman_builder.batch.plan.RunOptions`
     as a dict) in the workspace at ``root``; a task of ``kind`` ``synth-ground-truth`` makes one
-    synthetic take's files instead (:func:`~dualhuman_builder.sim.synth.ground_truth_task`). Returns ``{"ok", "ran", "error", "trace", "seconds"}``;
+    synthetic take's files instead (:func:`~dualhuman_builder.batch.synth.ground_truth_task`). Returns ``{"ok", "ran", "error", "trace", "seconds"}``;
     ``ran`` is False when the stage was up to date. Never raises for a failed stage."""
     from dualhuman_builder.batch.plan import RunOptions, stage_call
     from dualhuman_builder.workspace import Workspace
 
-    from dualhuman_builder.sim.synth import GROUND_TRUTH_TASK, ground_truth_task
+    if task.get("kind") in TASK_KINDS:  # not a stage: files only, no catalog
+        import importlib
 
-    if task.get("kind") == GROUND_TRUTH_TASK:  # files only: no stage, no catalog
-        return ground_truth_task(root, task, log)
+        module, name = TASK_KINDS[task["kind"]].split(":")
+        return getattr(importlib.import_module(module), name)(root, task, log)
     t0 = time.perf_counter()
     opts = task["options"]
     options = RunOptions(**{**opts, "takes": tuple(opts["takes"]) if opts.get("takes") else None,

@@ -88,7 +88,8 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
     """
     from rich.markup import escape
 
-    from dualhuman_builder.sim.synth import SynthOptions, describe_plan, make_synthetic, plan_synthetic
+    from dualhuman_builder.batch.synth import make_synthetic
+    from dualhuman_builder.sim.synth import SynthOptions, describe_plan, plan_synthetic
 
     options = SynthOptions(takes=takes, seed=seed, types=types or SYNTH_TYPES, preset=preset, fps=fps,
                            long_share=long_share, long_duration=long_duration, takes_per_day=takes_per_day, actors=pool,
@@ -112,11 +113,7 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
         console.print(f"plan written to {workspace / 'synth.json'}", highlight=False)
         return
 
-    if jobs is None:
-        from dualhuman_builder.batch.executors import default_workers
-
-        jobs = default_workers() if way == "ground-truth" else 1
-    elif way != "ground-truth" and jobs > 1:
+    if jobs is not None and way != "ground-truth" and jobs > 1:
         raise click.UsageError("--jobs makes ground-truth takes at once; the full path's stages run at once in "
                                "`dualhuman run WS --workers N`")  # fmt: skip
 

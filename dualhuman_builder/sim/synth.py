@@ -93,8 +93,6 @@ TAKES_PER_DAY = 6
 MAX_TAKES = 100_000
 #: Contents of the export of the ground-truth path (renders too with ``SynthOptions.render``).
 GROUND_TRUTH_EXPECT = ("motion", "contacts", "text")
-#: A worker task (:mod:`dualhuman_builder.batch.worker`) making one take's ground-truth files (:func:`ground_truth_task`).
-GROUND_TRUTH_TASK = "synth-ground-truth"
 #: Where the ground-truth path keeps its renders (under the workspace), and its record of a finished render.
 RENDERS_DIR, RENDER_RECORD = "synth/renders", ".synth-render.json"
 #: The ground-truth path's camera ring: radius (m) around the pair's mean pelvis, camera height (m)
@@ -420,12 +418,15 @@ def _describe(t: dict) -> str:
 
 def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = "full",
                    export: str | Path | None = None, include_flagged: bool = False, model=None,
-                   jobs: int = 1, log: Callable[[str], None] = print,
+                   files: Callable | None = None, log: Callable[[str], None] = print,
                    progress: Callable[[str], None] | None = None) -> SynthResult:  # fmt: skip
     """Plan (:func:`plan_synthetic`) and make a synthetic dataset in ``workspace`` (created if
     missing); see the module docstring for the two ``path`` values. ``export``: the export folder
     (required for ``ground-truth``; with ``full``, the takes fitted so far are exported).
-    ``jobs`` (ground-truth path): worker processes making scenes and renders at once (1: in this process).
+    ``files`` (ground-truth path): ``files(ws, plan, actors, render, log)`` yields ``(t, made)`` for
+    every planned take in plan order, ``made`` as :func:`ground_truth_files` returns it (default: made
+    here, one after the other; :func:`dualhuman_builder.batch.synth.make_synthetic` makes them in
+    worker processes).
     ``progress`` gets one line per take (default: ``log``), ``log`` the details. A take whose scene
     meets no quality contract is listed in ``failed`` and the others go on. Raises
     :class:`SynthError` for invalid options or when ``WS/synth.json`` holds another plan."""
@@ -437,8 +438,6 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
     say = progress or log
     if path not in PATHS:
         raise SynthError(f"unknown path {path!r}", fix=f"choose one of {', '.join(PATHS)}")
-    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
-        raise SynthError(f"jobs {jobs!r} must be a whole number of worker processes, at least 1", fix="pass --jobs 1 or more")
     if path == "ground-truth" and export is None:
         raise SynthError("the ground-truth path writes an export: it needs its folder",
                          fix="pass --export OUT (a new or empty folder, or an earlier export to update)")  # fmt: skip
@@ -467,8 +466,8 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
                 result.manifest = export_fitted(ws, export, plan, include_flagged=include_flagged, log=log)
         else:
             items = []
-            if jobs > 1:
-                made = _ground_truth_in_workers(ws, plan, actors, jobs, render, log)
+            if files is not None:
+                made = files(ws, plan, actors, render, log)
             else:
                 made = ((t, ground_truth_files(ws.root, t, [actors[a][1] for a in t["actors"]], model, log, render))
                         for t in plan["takes"])  # fmt: skip
@@ -570,7 +569,7 @@ def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None
     scene (``WS/synth/scenes/TAKE-gN.npz``, kept when made before with the same parameters) and,
     with ``render``, its render (:func:`_render_ground_truth`). ``shapes``: the pair's anny
     phenotypes, in the take's actor order. Files only, no catalog: so that worker processes can
-    make many takes at once (:func:`make_synthetic` with ``jobs``). Returns ``{"take", "generated"
+    make many takes at once (:mod:`dualhuman_builder.batch.synth`). Returns ``{"take", "generated"
     (bool), "scene_s", "render_s"}`` (``render_s`` None when not rendered now), or with ``failed``
     (the reason) when no draw met the scene's quality contract or the scene refused its parameters."""
     from dualhuman_builder.errors import FormatError
@@ -606,56 +605,6 @@ def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None
         seq = Scene.load(file).sequence
         out["render_s"] = _render_ground_truth(root, t, seq, render, log)[1]
     return out
-
-
-def ground_truth_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
-    """A worker's run of :func:`ground_truth_files` (``task``: ``t``, ``shapes``, ``render``), answered as
-    :func:`~dualhuman_builder.batch.worker.run_task` answers (``ok``, ``error``, ``seconds``) plus its result."""
-    from dualhuman_builder.batch.worker import describe_error
-
-    t0 = time.perf_counter()
-    try:
-        made = ground_truth_files(root, task["t"], task["shapes"], log=log, render=task.get("render"))
-    except Exception as e:  # noqa: BLE001 - the driver reports the take failed and goes on
-        import traceback
-
-        return {"ok": False, "ran": True, "error": describe_error(e), "trace": "".join(traceback.format_exception(e)[-6:]),
-                "seconds": time.perf_counter() - t0}  # fmt: skip
-    return {"ok": True, "ran": True, "error": None, "trace": None, "seconds": time.perf_counter() - t0, "made": made}
-
-
-def _ground_truth_in_workers(ws, plan: dict, actors: dict, jobs: int, render: dict | None, log):
-    """Yield ``(t, made)`` for every planned take in plan order, ``made`` as :func:`ground_truth_files`
-    returns it, made by ``jobs`` worker processes (:class:`~dualhuman_builder.batch.executors.LocalExecutor`,
-    their standard error in ``WS/synth/workers.log``, their log lines to ``log``). A worker that dies or raises makes the take
-    ``failed`` with the reason; the workers are stopped on leaving (also on Ctrl-C)."""
-    from dualhuman_builder.batch.executors import LocalExecutor
-
-    takes = plan["takes"]
-    (ws.root / "synth").mkdir(parents=True, exist_ok=True)
-    ex = LocalExecutor(ws.root, jobs, ws.root / "synth" / "workers.log")
-    answers: dict[int, dict] = {}
-    nxt = 0
-    try:
-        for k, t in enumerate(takes):
-            while k not in answers:
-                while nxt < len(takes) and ex.free() > 0:
-                    u = takes[nxt]
-                    ex.submit({"id": nxt, "kind": GROUND_TRUTH_TASK, "t": u, "render": render,
-                               "shapes": [actors[a][1] for a in u["actors"]]})  # fmt: skip
-                    nxt += 1
-                for ev in ex.poll(1.0):
-                    if ev[0] == "result":
-                        a = ev[2]
-                        answers[ev[1]] = a["made"] if a.get("ok") else \
-                            {"take": takes[ev[1]]["take"], "failed": a.get("error") or "the worker failed"}
-                    elif ev[0] == "lost":
-                        answers[ev[1]] = {"take": takes[ev[1]]["take"], "failed": ev[2]}
-                    elif ev[0] == "log":
-                        log(f"{takes[ev[1]]['take']}: {ev[2]}")
-            yield t, answers.pop(k)
-    finally:
-        ex.close()
 
 
 def _ground_truth_item(ws, t: dict, made: dict, say, counter: str, result: SynthResult, render: dict | None = None):

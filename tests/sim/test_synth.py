@@ -167,9 +167,11 @@ def test_a_broken_plan_file_is_a_clear_error(tmp_path_factory, data):
 def ground_truth(tmp_path_factory, body_model) -> tuple[Path, Path, object]:
     """Two tiny takes through the ground-truth path (the held-out type in test), made by two worker
     processes (the resume test then reads their files in this process)."""
+    from dualhuman_builder.batch.synth import make_synthetic as make_in_workers
+
     root = tmp_path_factory.mktemp("gt")
-    result = make_synthetic(root / "ws", GT, path="ground-truth", export=root / "out", model=body_model, jobs=2,
-                            log=lambda m: None, progress=lambda m: None)  # fmt: skip
+    result = make_in_workers(root / "ws", GT, path="ground-truth", export=root / "out", model=body_model, jobs=2,
+                             log=lambda m: None, progress=lambda m: None)  # fmt: skip
     return root / "ws", root / "out", result
 
 
@@ -277,7 +279,9 @@ def test_full_path_makes_the_first_stages_and_resumes(tmp_path, body_model):
 
 
 def test_a_take_whose_scene_is_refused_is_reported_failed_and_the_others_go_on(ground_truth, body_model):
-    from dualhuman_builder.sim.synth import SynthResult, _ground_truth_in_workers, _ground_truth_item, _register_actors
+    from dualhuman_builder.batch.synth import GROUND_TRUTH_TASK, _in_workers
+    from dualhuman_builder.batch.worker import TASK_KINDS
+    from dualhuman_builder.sim.synth import SynthResult, _ground_truth_item, _register_actors
     from dualhuman_builder.workspace import Workspace
 
     ws_root, _, _ = ground_truth
@@ -286,11 +290,12 @@ def test_a_take_whose_scene_is_refused_is_reported_failed_and_the_others_go_on(g
     result, lines = SynthResult(plan), []
     with Workspace.open(ws_root) as ws:
         actors = _register_actors(ws, plan, body_model, log=lambda m: None)
-        made = list(_ground_truth_in_workers(ws, {"takes": [bad, plan["takes"][1]]}, actors, 1, None, lambda m: None))
+        made = list(_in_workers(1, ws, {"takes": [bad, plan["takes"][1]]}, actors, None, lambda m: None))
         items = [_ground_truth_item(ws, t, m, lines.append, "[k/2]", result) for t, m in made]
     assert "approach distance 0.20 m is closer" in result.failed["BAD"] and "FAILED" in lines[0]
     assert items[0] is None and items[1].seq_id == plan["takes"][1]["take"] and result.skipped == [items[1].seq_id]
     assert "made before" in lines[1]
+    assert TASK_KINDS[GROUND_TRUTH_TASK] == "dualhuman_builder.batch.synth:ground_truth_task"
 
 
 def test_export_synth_split_needs_a_plan(tmp_path):
