@@ -53,7 +53,9 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
 @click.option("--include-flagged", is_flag=True,
               help="With --path full --export: export takes the quality gates flagged too.")
 @click.option("--speed", type=float, default=1.0, show_default=True,
-              help="The simulated devices play this many times faster than real time while recorded (full path).")
+              help="The simulated devices play this many times faster than real time while recorded (full path): to "
+                   "test the transports; above 1 the host clock runs slower than the devices' and the sync cannot "
+                   "align the takes, so keep 1 for data to fit.")
 @click.option("--render", is_flag=True,
               help="With --path ground-truth: render each scene from a ring of cameras (RGB, depth, masks, "
                    "keypoints) into the export, as a fitted take's renders, with the image models' targets.")
