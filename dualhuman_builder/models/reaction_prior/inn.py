@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from dualhuman_builder.errors import DualhumanError
+
 
 def _subnet(dim_in: int, dim_out: int, hidden: int) -> nn.Sequential:
     net = nn.Sequential(nn.Linear(dim_in, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
@@ -24,6 +26,10 @@ def _subnet(dim_in: int, dim_out: int, hidden: int) -> nn.Sequential:
     nn.init.zeros_(net[-1].weight)
     nn.init.zeros_(net[-1].bias)
     return net
+
+
+class NoInverseError(DualhumanError, NotImplementedError):
+    """The reverse direction was asked of a generator that has none (the MLP of the INN ablation)."""
 
 
 class CouplingINN(nn.Module):
@@ -95,4 +101,6 @@ class MLPMapper(nn.Module):
         return self.net(x)
 
     def inverse(self, y: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError("an MLP generator has no inverse (the INN ablation)")
+        """Refused: an MLP is not invertible, which is what the ablation measures."""
+        raise NoInverseError("the MLP generator (the INN ablation, mapper 'mlp') has no inverse: it maps the actor's "
+                             "code to the reactor's only", fix="use mapper 'inn' for the reverse direction")  # fmt: skip
