@@ -61,15 +61,16 @@ def _test_sequences(export: Path, split: str) -> list[tuple[str, np.ndarray, np.
 
 def _refinement(module, seqs, config: dict, window: int, iterations: int, lambda_prior: float, device: str) -> dict:
     from dualhuman_builder.models import metrics
-    from dualhuman_builder.models.reaction_prior.refine import corrupt_sequence, refine_sequence
+    from dualhuman_builder.models.reaction_prior.refine import corrupt_sequence, refine_sequences
     from dualhuman_builder.models.visibility import joint_visibility
 
-    truth, noisy, refined = [], [], []
+    truth, noisy, pairs = [], [], []
     for sid, actor, reactor in seqs:
         _, vis_b = joint_visibility(actor, reactor)
         n = corrupt_sequence(reactor, vis_b, config, 0, sid)  # seed 0: the same draw for every variant and seed
-        r, _ = refine_sequence(module, actor, n, window, lambda_prior, iterations, device=device)
-        truth.append(reactor), noisy.append(n), refined.append(r)
+        truth.append(reactor), noisy.append(n), pairs.append((actor, n))
+    refined = [r for r, _ in refine_sequences(module, pairs, window, lambda_prior, iterations,
+                                              float(config["refine_lr"]), device)]  # fmt: skip
     t, n, r = (np.concatenate(x) for x in (truth, noisy, refined))
 
     def figs(p):

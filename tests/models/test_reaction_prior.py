@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from dualhuman_builder.models.base import get_model
 from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
-from dualhuman_builder.models.reaction_prior.refine import blend_weights, refine_sequence, window_starts
+from dualhuman_builder.models.reaction_prior.refine import (blend_weights, refine_sequence, refine_sequences,
+                                                            window_starts)  # fmt: skip
 from dualhuman_builder.models.reaction_prior.representation import (canonical_pair, flat, rotate_y, to_canonical,
                                                                     to_world, window_frame)  # fmt: skip
 
@@ -191,6 +192,32 @@ def test_refinement_lowers_the_error_on_a_noisy_case():
     after = torch.from_numpy(refined).sub(b[0]).norm(dim=-1).mean()
     assert after < 0.7 * before, (float(before), float(after))
     assert refined.shape == (40, 22, 3) and refined.dtype == np.float32
+
+
+
+def test_pooled_refinement_matches_one_sequence_at_a_time(monkeypatch):
+    """Windows of several sequences optimised in shared chunks (one split across two chunks) come
+    out as each sequence refined alone: every window's code has its own loss and Adam moments."""
+    import dualhuman_builder.models.reaction_prior.refine as refine_mod
+
+    torch.manual_seed(0)
+    spec = get_model("reaction-prior")
+    module = spec.build({**spec.default_config(), **TINY, "use_vae": False, "dct_coeffs": 4})
+    pairs = []
+    for k, T in enumerate((40, 10, 25)):  # 4 windows, one padded short sequence, 3 windows
+        a, b = _motion(1, T, seed=10 + k)
+        noisy = b[0] + torch.randn(T, 22, 3, generator=torch.Generator().manual_seed(k)) * 0.03
+        pairs.append((a[0].numpy(), noisy.numpy()))
+    module.norm.observe(flat(torch.cat(canonical_pair(*_motion(2, 16, seed=9))[:2])))
+    alone = [refine_sequence(module, a, n, window=16, iterations=20) for a, n in pairs]
+    monkeypatch.setattr(refine_mod, "CHUNK_WINDOWS", 3)
+    pooled = refine_sequences(module, pairs, window=16, iterations=20)
+    assert [n for _, n in pooled] == [n for _, n in alone] == [4, 1, 3]
+    for (p, _), (s, _), (a, _) in zip(pooled, alone, pairs):
+        assert p.shape == a.shape
+        np.testing.assert_allclose(p, s, atol=1e-5)
+    with pytest.raises(ValueError, match="sequence 1"):
+        refine_sequences(module, [pairs[0], (pairs[1][0], pairs[0][1])], window=16, iterations=1)
 
 
 @pytest.fixture(scope="module")

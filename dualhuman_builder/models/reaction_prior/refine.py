@@ -99,25 +99,43 @@ def refine_sequence(module, actor: np.ndarray, noisy: np.ndarray, window: int = 
     """Refined reactor ``(T, 22, 3)`` float32 world metres of one sequence, and the number of windows,
     from the actor's joints and the noisy reactor's (both ``(T, 22, 3)``), windowed and blended as
     the module docstring says."""
-    a, r = np.asarray(actor, np.float32), np.asarray(noisy, np.float32)
-    T = len(a)
+    return refine_sequences(module, [(actor, noisy)], window, lambda_prior, iterations, lr, device)[0]
+
+
+def refine_sequences(module, pairs: list[tuple[np.ndarray, np.ndarray]], window: int = 64,
+                     lambda_prior: float = 0.01, iterations: int = 100, lr: float = 0.05,
+                     device: str | torch.device = "cpu") -> list[tuple[np.ndarray, int]]:  # fmt: skip
+    """:func:`refine_sequence` of each ``(actor, noisy)`` pair, the windows of every sequence optimised
+    together in chunks of :data:`CHUNK_WINDOWS`: each window's code has its own loss term and Adam
+    moments, so a window's result does not depend on its chunk, and pooling short sequences saves
+    the per-step overhead of many small batches."""
     L = int(window)
-    if T < L:  # pad with the last frame, crop after
-        pad = np.repeat(a[-1:], L - T, axis=0), np.repeat(r[-1:], L - T, axis=0)
-        a, r = np.concatenate([a, pad[0]]), np.concatenate([r, pad[1]])
-    starts = window_starts(len(a), L)
-    acc = np.zeros(a.shape, np.float64)
-    wsum = np.zeros(len(a), np.float64)
+    padded, todo = [], []  # todo: (sequence index, window start)
+    for i, (actor, noisy) in enumerate(pairs):
+        a, r = np.asarray(actor, np.float32), np.asarray(noisy, np.float32)
+        if a.shape != r.shape or a.ndim != 3:
+            raise ValueError(f"sequence {i}: actor {a.shape} and noisy reactor {r.shape} must both be (T, 22, 3)")
+        if len(a) < L:  # pad with the last frame, crop after
+            a = np.concatenate([a, np.repeat(a[-1:], L - len(a), axis=0)])
+            r = np.concatenate([r, np.repeat(r[-1:], L - len(r), axis=0)])
+        padded.append((a, r))
+        todo += [(i, s) for s in window_starts(len(a), L)]
+    acc = [np.zeros(a.shape, np.float64) for a, _ in padded]
+    wsum = [np.zeros(len(a), np.float64) for a, _ in padded]
     w = blend_weights(L)
-    for c0 in range(0, len(starts), CHUNK_WINDOWS):
-        chunk = starts[c0 : c0 + CHUNK_WINDOWS]
-        wa = torch.from_numpy(np.stack([a[s : s + L] for s in chunk])).to(device)
-        wr = torch.from_numpy(np.stack([r[s : s + L] for s in chunk])).to(device)
+    for c0 in range(0, len(todo), CHUNK_WINDOWS):
+        chunk = todo[c0 : c0 + CHUNK_WINDOWS]
+        wa = torch.from_numpy(np.stack([padded[i][0][s : s + L] for i, s in chunk])).to(device)
+        wr = torch.from_numpy(np.stack([padded[i][1][s : s + L] for i, s in chunk])).to(device)
         out = refine_windows(module, wa, wr, lambda_prior, iterations, lr).cpu().numpy().astype(np.float64)
-        for s, o in zip(chunk, out):
-            acc[s : s + L] += w[:, None, None] * o
-            wsum[s : s + L] += w
-    return (acc / wsum[:, None, None])[:T].astype(np.float32), len(starts)
+        for (i, s), o in zip(chunk, out):
+            acc[i][s : s + L] += w[:, None, None] * o
+            wsum[i][s : s + L] += w
+    counts = [0] * len(pairs)
+    for i, _ in todo:
+        counts[i] += 1
+    return [((acc[i] / wsum[i][:, None, None])[: len(pairs[i][0])].astype(np.float32), counts[i])
+            for i in range(len(pairs))]  # fmt: skip
 
 
 def _seq_seed(seed: int, sid: str) -> int:
