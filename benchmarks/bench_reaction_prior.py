@@ -237,11 +237,21 @@ def main() -> None:
     goals.append(Goal("refine_export.verify_problems", "<=", 0, "", "refined export passes `export verify`"))
     if args.device.startswith("cuda"):
         goals.append(Goal("variants.full.loader_share.mean", "<=", 0.10, "", "loader share of a training step (GPU)"))
-    rows = [[n, *(f"variants.{n}.refine.{w}.{k}.mean" for w, k in (("before", "mpjpe_mm"), ("after", "mpjpe_mm"),
-             ("after", "pa_mpjpe_mm"), ("after", "translation_mm")))] for n in variants]  # fmt: skip
-    tables = [Table("Refinement of the corrupted test reactors (mm, mean over seeds)",
-                    ["variant", "MPJPE before", "MPJPE after", "PA-MPJPE after", "translation after"],
-                    rows)]  # fmt: skip
+    def row(n: str, cells) -> list[str]:
+        return [n, *(f"variants.{n}.{c}" for c in cells)]
+
+    refine_cells = ("refine.before.mpjpe_mm", "refine.after.mpjpe_mm", "refine.mpjpe_reduction", "refine.after.pa_mpjpe_mm",
+                    "refine.before.translation_mm", "refine.after.translation_mm")  # fmt: skip
+    gen_cells = ("generation.fd_mm2", "generation.diversity_mm", "generation.mpjpe_mm", "generation.penetration_mean_mm",
+                 "generation.contact_f1")  # fmt: skip
+    tables = [Table("Refinement of the corrupted test reactors (mm; mean ± std over seeds)",
+                    ["variant", "MPJPE before", "MPJPE after", "MPJPE cut", "PA-MPJPE after", "translation before",
+                     "translation after"], [row(n, refine_cells) for n in variants]),
+              Table("Reaction generation from the actor alone, test windows (mean ± std over seeds)",
+                    ["variant", "FD (mm²)", "diversity (mm)", "MPJPE (mm)", "penetration (mm)", "contact F1"],
+                    [row(n, gen_cells) for n in variants]),
+              Table("Training", ["variant", "seconds", "windows/s", "loader share"],
+                    [row(n, ("train_s", "windows_per_s", "loader_share")) for n in variants])]  # fmt: skip
     notes = ("--quick: tiny export and model; the figures check the script, they measure nothing."
              if args.quick else "")  # fmt: skip
     path = write_results("reaction_prior", figures, params={**vars(args), "overrides": overrides}, goals=goals,

@@ -130,7 +130,7 @@ def expected(root: Path = ROOT) -> list[tuple[str, str, str]]:
 # ============================================================================ formatting
 def fmt(value: Any) -> str:
     """A figure as table text: None as a dash, booleans as yes/no, numbers to ~3 significant digits
-    (thousands separated), lists joined."""
+    (thousands separated), lists joined, ``{"mean", "std"}`` as "mean ± std"."""
     if value is None:
         return "—"
     if isinstance(value, bool):
@@ -154,6 +154,8 @@ def fmt(value: Any) -> str:
         return f"{value:.1e}"
     if isinstance(value, (list, tuple)):
         return ", ".join(fmt(v) for v in value)
+    if isinstance(value, dict) and set(value) == {"mean", "std"}:  # over seeds
+        return f"{fmt(value['mean'])} ± {fmt(value['std'])}"
     if isinstance(value, dict):
         return ", ".join(f"{k} {fmt(v)}" for k, v in value.items())
     return str(value).replace("|", "\\|")
