@@ -19,7 +19,9 @@ one pair per take. CPU utilisation of the local executor is the CPU
 time of the run's own processes (the driver and its workers) over the wall time of all cores, so
 other load on the machine can only lower it; ``system_busy`` is the share of all CPUs' time not idle
 over the run (/proc/stat), for every executor; peak memory per worker is the largest VmHWM of the local workers
-(``dualhuman_builder.batch.worker``) or Ray's task workers (``ray::``), sampled every 0.5 s.
+(``dualhuman_builder.batch.worker``) or Ray's task workers (``ray::``), sampled every 0.5 s; ``cpu_s``
+splits the run's CPU seconds between those workers, Ray's own processes (raylet, GCS, agents) and,
+for Ray, the driver, to show where Ray's overhead goes.
 
     python benchmarks/bench_run.py --takes 24
     python benchmarks/bench_run.py --takes 2 --out /tmp/run.json     # a quick check
@@ -55,35 +57,73 @@ def cpu_times() -> tuple[int, int]:
     return sum(parts) - idle, sum(parts)
 
 
+#: Command-line parts of Ray's own processes (raylet, GCS, its agents and monitors), not its task workers.
+RAY_DAEMON_MARKS = ("raylet", "gcs_server", "/ray/", "ray.", "dashboard", "log_monitor", "monitor.py")
+
+
+def _cpu_s(proc: Path) -> float:
+    """User + system CPU seconds of a process so far (/proc/PID/stat)."""
+    fields = (proc / "stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 class Sampler:
-    """Peak VmHWM (bytes) of the processes whose command line contains ``marker``, every 0.5 s."""
+    """Every 0.5 s: the peak VmHWM (bytes) of the processes whose command line contains ``marker``
+    (the workers), and the CPU seconds each process spent since the sampler started, summed by kind:
+    ``workers``, ``ray_daemons`` (:data:`RAY_DAEMON_MARKS`). A process's CPU after its last sample is
+    not seen (at most 0.5 s of it)."""
 
     def __init__(self, marker: str):
         self.marker, self.peaks, self.stop = marker, {}, threading.Event()
+        self.base: dict[str, float] = {}
+        self.cpu: dict[str, tuple[str, float]] = {}  # pid -> (kind, CPU seconds since start)
         self.thread = threading.Thread(target=self.loop, daemon=True)
 
-    def loop(self) -> None:
-        while not self.stop.wait(0.5):
-            for proc in Path("/proc").iterdir():
-                if not proc.name.isdigit():
+    def kind(self, cmd: str) -> str | None:
+        if self.marker in cmd:
+            return "workers"
+        return "ray_daemons" if any(m in cmd for m in RAY_DAEMON_MARKS) else None
+
+    def scan(self, first: bool = False) -> None:
+        for proc in Path("/proc").iterdir():
+            if not proc.name.isdigit() or proc.name == str(os.getpid()):
+                continue
+            try:
+                cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                kind = self.kind(cmd)
+                if kind is None:
                     continue
-                try:
-                    cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-                    if self.marker not in cmd:
-                        continue
+                used = _cpu_s(proc)
+                if first:
+                    self.base[proc.name] = used
+                    continue
+                self.cpu[proc.name] = (kind, used - self.base.get(proc.name, 0.0))
+                if kind == "workers":
                     for line in (proc / "status").read_text().splitlines():
                         if line.startswith("VmHWM:"):
                             self.peaks[proc.name] = max(self.peaks.get(proc.name, 0), int(line.split()[1]) * 1024)
-                except OSError:
-                    continue
+            except (OSError, ValueError, IndexError):
+                continue
+
+    def cpu_by_kind(self) -> dict[str, float]:
+        out: dict[str, float] = {"workers": 0.0, "ray_daemons": 0.0}
+        for kind, used in self.cpu.values():
+            out[kind] += used
+        return {k: round(v, 1) for k, v in out.items()}
+
+    def loop(self) -> None:
+        while not self.stop.wait(0.5):
+            self.scan()
 
     def __enter__(self):
+        self.scan(first=True)
         self.thread.start()
         return self
 
     def __exit__(self, *exc):
         self.stop.set()
         self.thread.join()
+        self.scan()
 
 
 def failed_lines(stdout: str) -> list[str]:
@@ -129,6 +169,8 @@ def timed_run(ws: Path, args, executor: str, address: str | None, marker: str, t
             # to the raylet, so for Ray this counts the driver only): other load on the machine lowers it
             "cpu_utilisation": round(own_cpu_s / (seconds * (os.cpu_count() or 1)), 3) if executor == "local" else None,
             "workers_seen": len(sampler.peaks),
+            # CPU seconds of the workers and of Ray's own processes over the run, and the driver's
+            "cpu_s": {**sampler.cpu_by_kind(), "driver": round(own_cpu_s, 1) if executor != "local" else None},
             "peak_worker_memory_mib": round(peak / 2**20, 1)}  # fmt: skip
 
 
