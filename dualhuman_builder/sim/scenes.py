@@ -76,7 +76,7 @@ TORCH_THREADS = 1
 SCENE_VERSION = 1
 #: Version of the generator: bumped whenever the same parameters generate different scenes, so
 #: that cached ``scene`` stages recompute (the changes are in CHANGELOG.md).
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 
 
 class SceneContractError(DualhumanError, ValueError):
@@ -630,6 +630,19 @@ def _arm_vertices(model, side: str) -> np.ndarray:
     return np.concatenate([regions.vertices_of(f"{name}_{part}") for part in ("upper_arm", "forearm", "hand")])
 
 
+def add_swivel_turns(swivel: np.ndarray | None, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An arm's swivel ``(T,)`` radians (None: none yet) plus one pass's ``turns (T,)`` (0 where the
+    pass left the frame alone), smoothed in time (Gaussian, 1.5 frames) but never below the turn a
+    frame needed. The turns are added to the swivel the arm had when the pass chose them, once: each
+    pass tries its candidates about that swivel. Returns the new swivel and the frames it moved."""
+    from scipy.ndimage import gaussian_filter1d
+
+    smooth = gaussian_filter1d(np.asarray(turns, dtype=np.float64), 1.5)
+    keep = (turns != 0) & (np.abs(turns) > np.abs(smooth))
+    smooth[keep] = turns[keep]
+    return (smooth if swivel is None else swivel + smooth), np.abs(smooth) > 1e-4
+
+
 def _resolve_by_swivel(model, performers, chor: Choreography, poses, seq, distances, log=None,
                        threshold: float = 0.0035):  # fmt: skip
     """Remove penetrations that involve an arm by turning its elbow about the shoulder-palm axis
@@ -640,7 +653,6 @@ def _resolve_by_swivel(model, performers, chor: Choreography, poses, seq, distan
     what a frame needed). Returns the new poses and the frames whose poses changed."""
     import roma
     import torch
-    from scipy.ndimage import gaussian_filter1d
 
     from dualhuman_builder.sim.pairquery import get_fast_pair
 
@@ -680,19 +692,15 @@ def _resolve_by_swivel(model, performers, chor: Choreography, poses, seq, distan
                 pen = -min(np.nanmin(x_arm, initial=1.0), np.nanmin(x_other, initial=1.0))
                 scores.append(max(pen, 0.0) + 0.002 * abs(SWIVEL_CANDIDATES[k]))
             best = int(np.argmin(scores))
-            if best:
-                chosen[(i, s)][f] = base + SWIVEL_CANDIDATES[best]
+            if best:  # the turn this pass adds to the swivel the arm already had
+                chosen[(i, s)][f] = SWIVEL_CANDIDATES[best]
                 verts[i][f] = cand[best]
     changed = np.zeros(T, dtype=bool)
-    for (i, s), angles in chosen.items():
-        if not angles.any():
-            continue
-        smooth = gaussian_filter1d(angles, 1.5)
-        keep = (angles != 0) & (np.abs(angles) > np.abs(smooth))
-        smooth[keep] = angles[keep]
-        track = chor.controls[i].arms[s]
-        track.swivel = smooth if track.swivel is None else track.swivel + smooth
-        changed |= np.abs(smooth) > 1e-4
+    for (i, s), turns in chosen.items():
+        if turns.any():
+            track = chor.controls[i].arms[s]
+            track.swivel, moved = add_swivel_turns(track.swivel, turns)
+            changed |= moved
     if log:
         log(f"elbow swivel moved {sum(int((a != 0).sum()) for a in chosen.values())} arm-frames out of the partner")
     if not changed.any():

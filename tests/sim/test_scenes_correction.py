@@ -34,3 +34,21 @@ def test_a_high_fps_scene_is_measured_on_a_coarser_grid(body_model):
     assert contract_failures(sc.stats) == [] and sc.stats["draws"] == 1
     measured = _measured(lines)
     assert len(measured) >= 2 and all(m < measured[0] for m in measured[1:])
+
+
+def test_a_second_swivel_pass_adds_its_turn_once():
+    """An elbow already swivelled -1.2 rad at a frame, turned a further -0.7 there by the next pass,
+    ends at -1.9 rad, not at -3.1 (the earlier swivel counted twice flipped a hugging arm's humerus
+    by 165 degrees at the release); frames the pass left alone keep their swivel, and the turn is
+    smoothed over its neighbours without falling below it."""
+    import numpy as np
+
+    from dualhuman_builder.sim.scenes import add_swivel_turns
+
+    first, moved = add_swivel_turns(None, np.eye(1, 30, 20)[0] * -1.2)
+    assert first[20] == -1.2 and moved[19] and moved[21] and not moved[0]
+    turns = np.zeros(30)
+    turns[20] = -0.7
+    second, moved = add_swivel_turns(first, turns)
+    assert second[20] == -1.9 and second[0] == first[0] == 0.0
+    assert -1.9 < second[19] < first[19] < 0 and set(np.flatnonzero(moved)) <= set(range(14, 27))
