@@ -3,7 +3,8 @@ ablations, reaction generation from the actor alone, and training speed.
 
 For each variant (the full model; the paper's Table 4 ablations: without the motion VAE, the INN
 replaced by an MLP, without noise augmentation) and each training seed, the prior is trained on the
-export's train split (`models.training.train`), then every test sequence's reactor is corrupted by the
+export's train split (`models.training.train`; the two generator ablations start from the full run's VAE
+of the same seed and train only the generator, unless `--own-vae`), then every test sequence's reactor is corrupted by the
 visibility-driven noise (`reaction_prior.noise`, the same draw for every variant and seed) and refined
 with the prior (`reaction_prior.refine`: windows of 64, half overlap, lambda_prior 0.01). Figures, as
 mean ± std over seeds: MPJPE (root-relative), PA-MPJPE and translation (pelvis) error of the reactor
@@ -39,6 +40,9 @@ VARIANTS = {
     "mlp": {"mapper": "mlp"},
     "no_noise": {"noise_augment": False},
 }
+#: Variants that change only the generator: by default they start from the full run's VAE of the same seed
+#: (``vae_from``), the VAE being independent of the generator and of the noise augmentation.
+SHARES_VAE = ("mlp", "no_noise")
 #: --quick: a tiny model and a few steps, to check the script end to end (figures mean nothing)
 QUICK = {"window": 32, "latent_dim": 16, "layers": 1, "heads": 2, "ff": 32, "dropout": 0.0, "mapper_blocks": 2,
          "mapper_hidden": 32, "vae_steps": 20, "inn_steps": 10, "stats_batches": 4, "dct_coeffs": 4,
@@ -137,13 +141,15 @@ def _train_and_score(job: tuple, seqs: list | None = None) -> dict:
     from dualhuman_builder.models.training import load_run, train
 
     name, seed, c = job
+    shared = name in SHARES_VAE and c["share_vae"]  # the generator ablations train on the full run's VAE
     if c["threads"] > 0:
         torch.set_num_threads(c["threads"])
     export, window = Path(c["export"]), c["window"]
     seqs = seqs if seqs is not None else _test_sequences(export, "test")
     run = Path(c["work"]) / f"{name}-s{seed}"
     t = time.perf_counter()
-    train("reaction-prior", export, run, config_overrides={**c["overrides"], **VARIANTS[name]},
+    train("reaction-prior", export, run, config_overrides={**c["overrides"], **VARIANTS[name],
+                                                          **({"vae_from": str(Path(c["work"]) / f"full-s{seed}")} if shared else {})},
           steps_scale=c["steps_scale"], batch_size=c["batch_size"], seed=seed, device=c["device"],
           progress=False)  # fmt: skip
     train_s = time.perf_counter() - t
@@ -172,6 +178,8 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="config override for every variant")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default; 1 with --jobs)")
     ap.add_argument("--jobs", type=int, default=1, help="trainings at once, each in its own process")
+    ap.add_argument("--own-vae", action="store_true",
+                    help="train the generator ablations' VAEs too, instead of starting them from the full run's")
     ap.add_argument("--quick", action="store_true", help="a tiny export, a tiny model, a few steps, one seed")
     ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
     ap.add_argument("--out", type=Path, default=None)
@@ -204,14 +212,20 @@ def main() -> None:
               "steps_scale": args.steps_scale, "batch_size": args.batch_size, "device": args.device,
               "iterations": args.iterations, "lambda_prior": args.lambda_prior,
               "threads": args.threads if args.jobs == 1 else max(1, args.threads)}  # fmt: skip
+    common["share_vae"] = "full" in variants and not args.own_vae
+    # first the runs that train a VAE (or none), then the ablations that take the full run's
+    waves = [[j for j in jobs if not (common["share_vae"] and j[0] in SHARES_VAE)],
+             [j for j in jobs if common["share_vae"] and j[0] in SHARES_VAE]]  # fmt: skip
+    recs = {}
     if args.jobs > 1:  # one training per process, each on its own thread(s); the figures do not depend on it
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            recs = dict(zip(jobs, pool.map(_train_and_score, [(n, s, common) for n, s in jobs])))
+            for wave in waves:
+                recs.update(zip(wave, pool.map(_train_and_score, [(n, s, common) for n, s in wave])))
     else:
-        recs = {(n, s): _train_and_score((n, s, common), seqs) for n, s in jobs}
+        recs = {(n, s): _train_and_score((n, s, common), seqs) for wave in waves for n, s in wave}
     for name in variants:
         per_seed = []
         for seed in range(args.seeds):

@@ -233,6 +233,36 @@ def tiny_run(tmp_path_factory):
     return export, run
 
 
+def test_an_ablation_starts_from_another_runs_vae_and_trains_only_its_generator(tiny_run, tmp_path):
+    """``vae_from``: the MLP generator trained on the full run's VAE runs only the inn phase, keeps that
+    VAE and normalisation bit for bit, reloads without the source folder, and a VAE of another shape
+    or a run without one is refused with a fix."""
+    import shutil
+
+    from dualhuman_builder.errors import DualhumanError
+    from dualhuman_builder.models.runs import read_metrics
+    from dualhuman_builder.models.training import load_run, train
+
+    export, run = tiny_run
+    source = tmp_path / "source"
+    shutil.copytree(run, source)
+    out = train("reaction-prior", export, tmp_path / "mlp", batch_size=4, seed=1, progress=False,
+                config_overrides={**TINY, "mapper": "mlp", "vae_from": str(source)})  # fmt: skip
+    assert [r["phase"] for r in read_metrics(out)] == ["inn"] * TINY["inn_steps"]
+    full, mlp = load_run(run)[2], load_run(out)[2]
+    for k, v in full.state_dict().items():
+        if k.startswith(("codec.", "norm.")):
+            assert torch.equal(v, mlp.state_dict()[k]), k
+    shutil.rmtree(source)
+    assert torch.equal(load_run(out)[2].codec.decode(torch.zeros(1, 16), 16), mlp.codec.decode(torch.zeros(1, 16), 16))
+    spec = get_model("reaction-prior")
+    with pytest.raises(DualhumanError, match="latent_dim") as e:
+        spec.build({**spec.default_config(), **TINY, "latent_dim": 8, "vae_from": str(run)})
+    assert e.value.fix
+    with pytest.raises(DualhumanError, match="use_vae"):
+        spec.build({**spec.default_config(), **TINY, "use_vae": False, "vae_from": str(run)})
+
+
 def test_training_on_the_tiny_export_lowers_the_loss_and_reloads_identically(tiny_run):
     from dualhuman_builder.models.runs import read_metrics
     from dualhuman_builder.models.training import load_run

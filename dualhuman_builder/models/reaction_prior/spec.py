@@ -17,11 +17,18 @@ Ablations (the paper's Table 4 rows), all config switches:
   the refinement optimises coefficients. Only the ``inn`` phase runs.
 - ``mapper = "mlp"``: the INN replaced by an MLP of the same width and depth (one direction).
 - ``noise_augment = false``: the generator sees clean inputs in training (actors; reactors in reverse).
+
+``vae_from``: a reaction-prior run folder whose trained motion VAE and normalisation this model
+starts from; its ``vae`` phase is then skipped and only the generator trains. The generator
+ablations of one training seed can so share the full model's VAE (the VAE does not depend on the
+generator or on the noise augmentation), which isolates what they change and saves most of their
+training. The run's checkpoint holds the VAE it started from, so the folder is read once, at the start.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -66,7 +73,10 @@ DEFAULTS: dict[str, Any] = {
     "eval_refine_windows": 8,
     "eval_refine_iterations": 50,
     "eval_seed": 0,
+    "vae_from": None,
 }
+#: Config keys that shape the motion VAE and its normalisation: a run given as ``vae_from`` must share them.
+VAE_KEYS = ("window", "latent_dim", "layers", "heads", "ff", "dropout", "stats_batches")
 
 class ReactionPrior(nn.Module):
     """Normaliser + motion code (VAE or, ablated, DCT) + generator (INN or, ablated, MLP).
@@ -91,6 +101,33 @@ class ReactionPrior(nn.Module):
             self.mapper = MLPMapper(dim, c["mapper_blocks"], c["mapper_hidden"])
         else:
             raise ValueError(f"mapper must be 'inn' or 'mlp', got {c['mapper']!r}")
+        if c.get("vae_from"):
+            self._load_vae(Path(c["vae_from"]))
+
+    def _load_vae(self, run_dir: Path) -> None:
+        """Take the motion VAE and the normalisation of the reaction-prior run ``run_dir`` (its last
+        checkpoint, after its ``vae`` phase), refusing a run whose VAE is shaped otherwise."""
+        from dualhuman_builder.errors import DualhumanError
+        from dualhuman_builder.models import runs
+
+        fix = "pass vae_from a reaction-prior run (with the motion VAE) that finished its vae phase, with the same " + \
+            ", ".join(VAE_KEYS)  # fmt: skip
+        if not self.config["use_vae"]:
+            raise DualhumanError("vae_from needs use_vae = true (the ablation without the VAE has none to take)", fix=fix)
+        doc = runs.read_json(run_dir / runs.CONFIG, "the run's config")
+        theirs = {**DEFAULTS, **(doc.get("config") or {})}
+        if doc.get("model") != NAME or not theirs["use_vae"]:
+            raise DualhumanError(f"{run_dir} is not a run of the reaction prior with its motion VAE", fix=fix)
+        differ = [k for k in VAE_KEYS if theirs[k] != self.config[k]]
+        if differ:
+            raise DualhumanError(f"{run_dir}'s VAE differs from this config in " + ", ".join(
+                f"{k} ({theirs[k]!r} there, {self.config[k]!r} here)" for k in differ), fix=fix)  # fmt: skip
+        last, weights, _ = runs.load_checkpoint(run_dir, "cpu", optimizer=False)
+        if last.get("phase") == "vae" and int(last.get("phase_step", 0)) < int(theirs["vae_steps"]):
+            raise DualhumanError(f"{run_dir} has not finished its vae phase (step {last.get('phase_step')} of "
+                                 f"{theirs['vae_steps']})", fix=fix)  # fmt: skip
+        part = {k: v for k, v in weights.items() if k.startswith(("codec.", "norm."))}
+        self.load_state_dict({**self.state_dict(), **part})
 
     @property
     def latent_dim(self) -> int:
@@ -123,6 +160,7 @@ class ReactionPriorSpec:
     """:class:`~dualhuman_builder.models.base.ModelSpec` of the reaction prior (see the module docstring)."""
 
     name = NAME
+    init_keys = ("vae_from",)  # a run's checkpoint holds the VAE it started from
     about = ("the Dual-Human paper's reaction prior: a motion VAE and an invertible network from the actor's latent "
              "distribution to the reactor's, which refines a noisy reactor (`dualhuman refine`)")
 
@@ -135,7 +173,7 @@ class ReactionPriorSpec:
     def phases(self, config: dict[str, Any]) -> list[Phase]:
         c = {**DEFAULTS, **config}
         lr, wd = float(c["lr"]), float(c["weight_decay"])
-        out = [Phase("vae", int(c["vae_steps"]), lr, wd)] if c["use_vae"] else []
+        out = [Phase("vae", int(c["vae_steps"]), lr, wd)] if c["use_vae"] and not c.get("vae_from") else []
         return out + [Phase("inn", int(c["inn_steps"]), lr, wd)]
 
     def parameters(self, module: nn.Module, phase: str) -> Iterable[nn.Parameter]:
