@@ -223,7 +223,11 @@ class RayExecutor:
         if not self.refs:
             time.sleep(timeout)
             return []
-        done, _ = self.ray.wait(list(self.refs), num_returns=len(self.refs), timeout=timeout)
+        # back as soon as one task ends (a slot is free), with every other one ended by then
+        refs = list(self.refs)
+        done, rest = self.ray.wait(refs, num_returns=1, timeout=timeout)
+        if done and rest:
+            done += self.ray.wait(rest, num_returns=len(rest), timeout=0)[0]
         events: list[tuple] = []
         for ref in done:
             tid = self.refs.pop(ref)
