@@ -8,7 +8,8 @@ of the same seed and train only the generator, unless `--own-vae`), then every t
 visibility-driven noise (`reaction_prior.noise`, the same draw for every variant and seed) and refined
 with the prior (`reaction_prior.refine`: windows of 64, half overlap, lambda_prior 0.01). Figures, as
 mean ± std over seeds: MPJPE (root-relative), PA-MPJPE and translation (pelvis) error of the reactor
-before and after, in mm (`models.metrics`). Reaction generation: the reactor decoded from the prior's
+before and after, in mm (`models.metrics`), and the weighted prior term's share of the objective at the
+last step (how much the prior, rather than the observation, steers the result). Reaction generation: the reactor decoded from the prior's
 mean given the clean actor, per test window: Fréchet distance of joint positions and diversity against
 the held-out reactions, proxy penetration and proxy contact F1 against the ground truth. Speed:
 training windows/s and the loader's share of a step, from the run's summary. A refined export is
@@ -73,8 +74,9 @@ def _refinement(module, seqs, config: dict, window: int, iterations: int, lambda
         _, vis_b = joint_visibility(actor, reactor)
         n = corrupt_sequence(reactor, vis_b, config, 0, sid)  # seed 0: the same draw for every variant and seed
         truth.append(reactor), noisy.append(n), pairs.append((actor, n))
+    terms: dict[str, float] = {}
     refined = [r for r, _ in refine_sequences(module, pairs, window, lambda_prior, iterations,
-                                              float(config["refine_lr"]), device)]  # fmt: skip
+                                              float(config["refine_lr"]), device, terms)]  # fmt: skip
     t, n, r = (np.concatenate(x) for x in (truth, noisy, refined))
 
     def figs(p):
@@ -84,7 +86,7 @@ def _refinement(module, seqs, config: dict, window: int, iterations: int, lambda
 
     before, after = figs(n), figs(r)
     return {"before": before, "after": after, "mpjpe_reduction": 1.0 - after["mpjpe_mm"] / before["mpjpe_mm"],
-            "frames": len(t)}  # fmt: skip
+            "frames": len(t), "prior_share": terms.get("prior", 0.0) / max(1e-12, terms.get("data", 0.0) + terms.get("prior", 0.0))}  # fmt: skip
 
 
 def _generation(module, seqs, window: int, device: str) -> dict:
@@ -255,12 +257,12 @@ def main() -> None:
         return [n, *(f"variants.{n}.{c}" for c in cells)]
 
     refine_cells = ("refine.before.mpjpe_mm", "refine.after.mpjpe_mm", "refine.mpjpe_reduction", "refine.after.pa_mpjpe_mm",
-                    "refine.before.translation_mm", "refine.after.translation_mm")  # fmt: skip
+                    "refine.before.translation_mm", "refine.after.translation_mm", "refine.prior_share")  # fmt: skip
     gen_cells = ("generation.fd_mm2", "generation.diversity_mm", "generation.mpjpe_mm", "generation.penetration_mean_mm",
                  "generation.contact_f1")  # fmt: skip
     tables = [Table("Refinement of the corrupted test reactors (mm; mean ± std over seeds)",
                     ["variant", "MPJPE before", "MPJPE after", "MPJPE cut", "PA-MPJPE after", "translation before",
-                     "translation after"], [row(n, refine_cells) for n in variants]),
+                     "translation after", "prior's share of the objective"], [row(n, refine_cells) for n in variants]),
               Table("Reaction generation from the actor alone, test windows (mean ± std over seeds)",
                     ["variant", "FD (mm²)", "diversity (mm)", "MPJPE (mm)", "penetration (mm)", "contact F1"],
                     [row(n, gen_cells) for n in variants]),

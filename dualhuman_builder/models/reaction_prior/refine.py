@@ -62,10 +62,12 @@ def blend_weights(L: int) -> np.ndarray:
 
 
 def refine_windows(module, actor: torch.Tensor, noisy: torch.Tensor, lambda_prior: float = 0.01,
-                   iterations: int = 100, lr: float = 0.05) -> torch.Tensor:  # fmt: skip
+                   iterations: int = 100, lr: float = 0.05, terms: dict[str, float] | None = None) -> torch.Tensor:  # fmt: skip
     """Refined reactor windows ``(N, L, 22, 3)`` world metres from the actor's ``actor (N, L, 22, 3)``
     and the noisy reactor's ``noisy`` (same shape), by Eq. 5 (module docstring). The module's weights
-    are not changed (gradients are taken with respect to the code only)."""
+    are not changed (gradients are taken with respect to the code only). ``terms``: if given, the
+    last step's data term and weighted prior term (``lambda_prior * KL``), summed over the windows,
+    are added to its ``"data"`` and ``"prior"`` (how much the prior weighs in the objective)."""
     was = module.training
     module.eval()
     try:
@@ -87,6 +89,9 @@ def refine_windows(module, actor: torch.Tensor, noisy: torch.Tensor, lambda_prio
                     mu.grad, ls.grad = torch.autograd.grad(loss, [mu, ls])
                     opt.step()
                     sched.step()
+                if terms is not None:
+                    terms["data"] = terms.get("data", 0.0) + float(data.detach().sum())
+                    terms["prior"] = terms.get("prior", 0.0) + float(lambda_prior * prior.detach().sum())
         with torch.no_grad():
             return to_world(module.decode(mu.detach(), cr.shape[1]), origin, yaw)
     finally:
@@ -104,11 +109,12 @@ def refine_sequence(module, actor: np.ndarray, noisy: np.ndarray, window: int = 
 
 def refine_sequences(module, pairs: list[tuple[np.ndarray, np.ndarray]], window: int = 64,
                      lambda_prior: float = 0.01, iterations: int = 100, lr: float = 0.05,
-                     device: str | torch.device = "cpu") -> list[tuple[np.ndarray, int]]:  # fmt: skip
+                     device: str | torch.device = "cpu",
+                     terms: dict[str, float] | None = None) -> list[tuple[np.ndarray, int]]:  # fmt: skip
     """:func:`refine_sequence` of each ``(actor, noisy)`` pair, the windows of every sequence optimised
     together in chunks of :data:`CHUNK_WINDOWS`: each window's code has its own loss term and Adam
     moments, so a window's result does not depend on its chunk, and pooling short sequences saves
-    the per-step overhead of many small batches."""
+    the per-step overhead of many small batches. ``terms``: as :func:`refine_windows` takes it."""
     L = int(window)
     padded, todo = [], []  # todo: (sequence index, window start)
     for i, (actor, noisy) in enumerate(pairs):
@@ -127,7 +133,7 @@ def refine_sequences(module, pairs: list[tuple[np.ndarray, np.ndarray]], window:
         chunk = todo[c0 : c0 + CHUNK_WINDOWS]
         wa = torch.from_numpy(np.stack([padded[i][0][s : s + L] for i, s in chunk])).to(device)
         wr = torch.from_numpy(np.stack([padded[i][1][s : s + L] for i, s in chunk])).to(device)
-        out = refine_windows(module, wa, wr, lambda_prior, iterations, lr).cpu().numpy().astype(np.float64)
+        out = refine_windows(module, wa, wr, lambda_prior, iterations, lr, terms).cpu().numpy().astype(np.float64)
         for (i, s), o in zip(chunk, out):
             acc[i][s : s + L] += w[:, None, None] * o
             wsum[i][s : s + L] += w
