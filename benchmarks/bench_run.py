@@ -197,6 +197,28 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def run_tables(figures: dict, params: dict) -> list[Table]:
+    """The results file's tables, from its ``figures`` and ``params``: throughput and memory per run,
+    where each run's CPU seconds went, and the takes lost (no scene met its contract)."""
+    runs = [("run, local executor", "local"), ("run, Ray (local head)", "ray"),
+            ("run, local executor again", "local_again"), ("run, Ray again", "ray_again")]  # fmt: skip
+    runs = [(label, key) for label, key in runs if key in figures]
+    rows = [["make the takes (synth, full path)", "make_takes.seconds", "make_takes.takes_per_hour", "", ""]]
+    rows += [[label, f"{k}.seconds", f"{k}.takes_per_hour", f"{k}.cpu_utilisation", f"{k}.peak_worker_memory_mib"]
+             for label, k in runs]  # fmt: skip
+    rows.append(["full path: synth + run (local)", "full_path.seconds", "full_path.takes_per_hour", "", ""])
+    rows.append(["ground-truth path: synth to a verified export", "ground_truth_path.seconds",
+                 "ground_truth_path.takes_per_hour", "", ""])  # fmt: skip
+    p = params
+    return [Table(f"{p['takes']} short takes ({p['types']}, {p['preset']}, {p['fps']:g} fps), run until "
+                  f"{p['until'] or 'sheet'}", ["", "s", "takes/h", "CPU utilisation", "peak MiB per worker"], rows),
+            Table("Where each run's CPU seconds went", ["", "workers", "Ray's own processes", "Ray's driver"],
+                  [[label, f"{k}.cpu_s.workers", f"{k}.cpu_s.ray_daemons", f"{k}.cpu_s.driver"] for label, k in runs]),
+            Table("Takes lost (no scene met its quality contract in its draws)", ["", "takes lost", "which"],
+                  [["full path", "make_takes.failed_takes", "make_takes.failed"],
+                   ["ground-truth path", "ground_truth_path.failed_takes", "ground_truth_path.failed"]])]  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--takes", type=int, default=24)
@@ -291,22 +313,7 @@ def main() -> None:
     goals = [Goal("local.cpu_utilisation", ">=", 0.85, "", "CPU utilisation, local executor")]
     if "ray_overhead" in figures:
         goals.append(Goal("ray_overhead", "<=", 0.10, "", "Ray's time over the local executor's, minus 1"))
-    rows = [["make the takes (synth, full path)", "make_takes.seconds", "make_takes.takes_per_hour", "", ""],
-            ["run, local executor", "local.seconds", "local.takes_per_hour", "local.cpu_utilisation",
-             "local.peak_worker_memory_mib"]]  # fmt: skip
-    if "ray" in figures:
-        rows.append(["run, Ray (local head)", "ray.seconds", "ray.takes_per_hour", "ray.cpu_utilisation",
-                     "ray.peak_worker_memory_mib"])  # fmt: skip
-        rows.append(["run, local executor again", "local_again.seconds", "local_again.takes_per_hour",
-                     "local_again.cpu_utilisation", "local_again.peak_worker_memory_mib"])  # fmt: skip
-        rows.append(["run, Ray again", "ray_again.seconds", "ray_again.takes_per_hour", "ray_again.cpu_utilisation",
-                     "ray_again.peak_worker_memory_mib"])  # fmt: skip
-    rows.append(["full path: synth + run (local)", "full_path.seconds", "full_path.takes_per_hour", "", ""])
-    rows.append(["ground-truth path: synth to a verified export", "ground_truth_path.seconds",
-                 "ground_truth_path.takes_per_hour", "", ""])  # fmt: skip
-    tables = [Table(f"{args.takes} short takes ({args.types}, {args.preset}, {args.fps:g} fps), run until "
-                    f"{args.until or 'sheet'}",
-                    ["", "s", "takes/h", "CPU utilisation", "peak MiB per worker"], rows)]  # fmt: skip
+    tables = run_tables(figures, vars(args))
     path = write_results("run", figures, params=vars(args), goals=goals, tables=tables, out=args.out)
     print(figures)
     print(f"wrote {path}")

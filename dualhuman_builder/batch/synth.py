@@ -7,15 +7,13 @@ each loading the body model once; this process computes the contacts and writes 
 
 from __future__ import annotations
 
-import time
-import traceback
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 from dualhuman_builder.batch.executors import LocalExecutor, default_workers
-from dualhuman_builder.batch.worker import describe_error
+from dualhuman_builder.batch.worker import answer
 from dualhuman_builder.sim.synth import SynthError, SynthResult, ground_truth_files
 
 #: A worker task (:data:`dualhuman_builder.batch.worker.TASK_KINDS`) making one take's ground-truth files
@@ -44,13 +42,8 @@ def make_synthetic(workspace: str | Path, options, *, jobs: int | None = None, p
 def ground_truth_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
     """A worker's run of :func:`ground_truth_files` (``task``: ``t``, ``shapes``, ``render``), answered as
     :func:`~dualhuman_builder.batch.worker.run_task` answers (``ok``, ``error``, ``seconds``) plus its result."""
-    t0 = time.perf_counter()
-    try:
-        made = ground_truth_files(root, task["t"], task["shapes"], log=log, render=task.get("render"))
-    except Exception as e:  # noqa: BLE001 - the driver reports the take failed and goes on
-        return {"ok": False, "ran": True, "error": describe_error(e), "trace": "".join(traceback.format_exception(e)[-6:]),
-                "seconds": time.perf_counter() - t0}  # fmt: skip
-    return {"ok": True, "ran": True, "error": None, "trace": None, "seconds": time.perf_counter() - t0, "made": made}
+    return answer(lambda: (True, {"made": ground_truth_files(root, task["t"], task["shapes"], log=log,
+                                                            render=task.get("render"))}))
 
 
 def _in_workers(jobs: int, ws, plan: dict, actors: dict, render: dict | None, log):

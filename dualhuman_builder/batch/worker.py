@@ -46,6 +46,19 @@ def describe_error(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}"
 
 
+def answer(work: Callable[[], tuple[bool, dict[str, Any]]]) -> dict[str, Any]:
+    """A task's answer: ``work()`` returns ``(ran, extra)``; the answer is ``{"ok", "ran", "error",
+    "trace", "seconds"}`` plus ``extra``, or, when it raises, ``ok`` False with the error (never raises:
+    the driver records a failed task, retries it and goes on with the others)."""
+    t0 = time.perf_counter()
+    try:
+        ran, extra = work()
+    except Exception as e:  # noqa: BLE001 - see the docstring
+        return {"ok": False, "ran": True, "error": describe_error(e), "trace": "".join(traceback.format_exception(e)[-6:]),
+                "seconds": time.perf_counter() - t0}  # fmt: skip
+    return {"ok": True, "ran": ran, "error": None, "trace": None, "seconds": time.perf_counter() - t0, **extra}
+
+
 def run_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
     """Run ``task`` (``take``, ``stage``, ``options``: a :class:`~dualhuman_builder.batch.plan.RunOptions`
     as a dict) in the workspace at ``root``; a task of ``kind`` ``synth-ground-truth`` makes one
@@ -59,19 +72,17 @@ def run_task(root: str | Path, task: dict[str, Any], log: Callable[[str], None])
 
         module, name = TASK_KINDS[task["kind"]].split(":")
         return getattr(importlib.import_module(module), name)(root, task, log)
-    t0 = time.perf_counter()
     opts = task["options"]
     options = RunOptions(**{**opts, "takes": tuple(opts["takes"]) if opts.get("takes") else None,
                             "stages": tuple(opts["stages"]) if opts.get("stages") else None})  # fmt: skip
-    try:
+
+    def stage() -> tuple[bool, dict]:
         call = stage_call(task["stage"], options)
         with Workspace.open(root) as ws:
             res = call(ws, task["take"], log)
-        return {"ok": True, "ran": res is not None and not res.skipped, "error": None, "trace": None,
-                "seconds": time.perf_counter() - t0}  # fmt: skip
-    except Exception as e:  # noqa: BLE001 - the driver records it, retries it and goes on with the other takes
-        return {"ok": False, "ran": True, "error": describe_error(e), "trace": "".join(traceback.format_exception(e)[-6:]),
-                "seconds": time.perf_counter() - t0}  # fmt: skip
+        return res is not None and not res.skipped, {}
+
+    return answer(stage)
 
 
 def stage_rows(catalog: Path) -> dict[tuple[str, str | None, str], dict[str, Any]]:
