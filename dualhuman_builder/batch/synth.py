@@ -14,6 +14,7 @@ from typing import Any
 
 from dualhuman_builder.batch.executors import LocalExecutor, default_workers
 from dualhuman_builder.batch.worker import answer
+from dualhuman_builder.sim.scenes import MAX_DRAWS
 from dualhuman_builder.sim.synth import SynthError, SynthResult, ground_truth_files
 
 #: A worker task (:data:`dualhuman_builder.batch.worker.TASK_KINDS`) making one take's ground-truth files
@@ -43,10 +44,11 @@ def ground_truth_task(root: str | Path, task: dict[str, Any], log: Callable[[str
     """A worker's run of :func:`ground_truth_files` (``task``: ``t``, ``shapes``, ``render``), answered as
     :func:`~dualhuman_builder.batch.worker.run_task` answers (``ok``, ``error``, ``seconds``) plus its result."""
     return answer(lambda: (True, {"made": ground_truth_files(root, task["t"], task["shapes"], log=log,
-                                                            render=task.get("render"))}))
+                                                            render=task.get("render"),
+                                                            max_draws=task.get("max_draws", MAX_DRAWS))}))
 
 
-def _in_workers(jobs: int, ws, plan: dict, actors: dict, render: dict | None, log):
+def _in_workers(jobs: int, ws, plan: dict, actors: dict, render: dict | None, log, max_draws: int = MAX_DRAWS):
     """Yield ``(t, made)`` for every planned take in plan order, ``made`` as :func:`ground_truth_files`
     returns it, made by ``jobs`` worker processes (:class:`~dualhuman_builder.batch.executors.LocalExecutor`,
     their standard error in ``WS/synth/workers.log``, their log lines to ``log``). A worker that dies or raises makes the take
@@ -61,7 +63,7 @@ def _in_workers(jobs: int, ws, plan: dict, actors: dict, render: dict | None, lo
             while k not in answers:
                 while nxt < len(takes) and ex.free() > 0:
                     u = takes[nxt]
-                    ex.submit({"id": nxt, "kind": GROUND_TRUTH_TASK, "t": u, "render": render,
+                    ex.submit({"id": nxt, "kind": GROUND_TRUTH_TASK, "t": u, "render": render, "max_draws": max_draws,
                                "shapes": [actors[a][1] for a in u["actors"]]})  # fmt: skip
                     nxt += 1
                 for ev in ex.poll(1.0):

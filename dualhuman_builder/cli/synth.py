@@ -12,6 +12,8 @@ from dualhuman_builder.cli.app import console, main
 #: The interaction types (``dualhuman_builder.sim.scenes.SCENE_TYPES``, spelled out so that --help imports nothing
 #: heavy; tests/sim/test_synth.py checks they agree).
 SYNTH_TYPES = ("handshake", "hug", "high_five", "push", "pat_on_back", "dance_turn")
+#: ``dualhuman_builder.sim.scenes.MAX_DRAWS``, spelled out for the same reason (checked there too).
+MAX_DRAWS = 8
 
 
 def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
@@ -63,6 +65,10 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
 @click.option("--render-views", type=int, default=4, show_default=True, help="With --render: cameras on the ring.")
 @click.option("--render-every", type=int, default=5, show_default=True, help="With --render: render every N-th frame.")
 @click.option("--render-spp", type=int, default=4, show_default=True, help="With --render: samples per pixel.")
+@click.option("--max-draws", type=click.IntRange(1, 64), default=MAX_DRAWS, show_default=True,
+              help="With --path ground-truth: the most draws of a scene's variation before its take fails. A scene's "
+                   "generation is deterministic: a failed take is recorded (WS/synth/scenes/TAKE-gN.failed.json) and "
+                   "not drawn again on resume, unless asked for with more draws.")
 @click.option("--jobs", type=click.IntRange(min=1), default=None,
               help="With --path ground-truth: worker processes making scenes and renders at once. Default: one per CPU "
                    "within the available memory at 2 GiB each (1 makes them in this process).")
@@ -70,7 +76,8 @@ def _names(ctx, param, value: str | None) -> tuple[str, ...] | None:
 def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float, long_share: float,
           long_duration: float, takes_per_day: int, pool: int | None, hold_out_actors: int, hold_out_types, way: str,
           export_dir: Path | None, include_flagged: bool, speed: float, render: bool, render_size: int,
-          render_views: int, render_every: int, render_spp: int, jobs: int | None, plan_only: bool):  # fmt: skip
+          render_views: int, render_every: int, render_spp: int, max_draws: int, jobs: int | None,
+          plan_only: bool):  # fmt: skip
     """Generate a varied synthetic dataset of TAKES simulated takes into WORKSPACE (created if missing).
 
     The plan (WORKSPACE/synth.json) is drawn from the seed: an actor pool over statures, genders
@@ -97,7 +104,7 @@ def synth(workspace: Path, takes: int, seed: int, types, preset: str, fps: float
                            long_share=long_share, long_duration=long_duration, takes_per_day=takes_per_day, actors=pool,
                            hold_out_actors=hold_out_actors, hold_out_types=hold_out_types or (), speed=speed,
                            render=render, render_size=render_size, render_views=render_views, render_every=render_every,
-                           render_spp=render_spp)  # fmt: skip
+                           render_spp=render_spp, max_draws=max_draws)  # fmt: skip
     plan = plan_synthetic(options)
     for line in describe_plan(plan, way):
         console.print(escape(line), highlight=False)

@@ -51,7 +51,7 @@ from typing import Any, Callable
 import numpy as np
 
 from dualhuman_builder.errors import DualhumanError
-from dualhuman_builder.sim.scenes import NATURAL_DURATION, SCENE_TYPES, SESSION_TYPE
+from dualhuman_builder.sim.scenes import MAX_DRAWS, NATURAL_DURATION, SCENE_TYPES, SESSION_TYPE
 
 #: The plan's file in the workspace, its format name and version.
 PLAN_FILE = "synth.json"
@@ -118,7 +118,9 @@ class SynthOptions:
     the full path records them. ``render`` (ground-truth path only): render each scene from a ring
     of ``render_views`` cameras at ``render_size`` x ``render_size`` pixels, every ``render_every``-th
     frame, ``render_spp`` samples per pixel; the render settings are not part of the plan (the
-    scenes do not depend on them), the export's manifest records them."""
+    scenes do not depend on them), the export's manifest records them. ``max_draws`` (ground-truth
+    path): the most draws of each interaction scene's variation before its take fails
+    (:func:`~dualhuman_builder.sim.scenes.make_scene`); not part of the plan either."""
 
     takes: int
     seed: int = 0
@@ -137,6 +139,7 @@ class SynthOptions:
     render_views: int = 4
     render_every: int = 5
     render_spp: int = 4
+    max_draws: int = MAX_DRAWS
 
     def render_settings(self) -> dict[str, Any] | None:
         """The renders' settings (``size``, ``views``, ``every``, ``spp`` and :data:`GROUND_TRUTH_RENDER`),
@@ -162,7 +165,7 @@ class SynthOptions:
 
     def arguments(self) -> dict[str, Any]:
         """The options as the plan records them (the default pool size resolved)."""
-        d = {k: v for k, v in asdict(self).items() if not k.startswith("render")}  # renders do not change the plan
+        d = {k: v for k, v in asdict(self).items() if not k.startswith("render") and k != "max_draws"}  # how, not what
         d.update(takes=int(self.takes), seed=int(self.seed), hold_out_actors=int(self.hold_out_actors),
                  types=list(self.types), hold_out_types=list(self.hold_out_types), actors=int(self.pool_size()),
                  fps=float(self.fps), long_share=float(self.long_share), long_duration=float(self.long_duration),
@@ -211,6 +214,8 @@ def check_options(o: SynthOptions) -> None:
                          fix=f"pass --long-duration from {MIN_LONG_DURATION_S:g} to 3600 s")  # fmt: skip
     if not (isinstance(o.speed, (int, float)) and 0.1 <= o.speed <= 20.0):
         raise SynthError(f"capture speed {o.speed!r} is out of range", fix="pass --speed from 0.1 to 20")
+    if isinstance(o.max_draws, bool) or not isinstance(o.max_draws, (int, np.integer)) or not 1 <= o.max_draws <= 64:
+        raise SynthError(f"max draws {o.max_draws!r} is out of range", fix="pass --max-draws from 1 to 64")
     pool = o.pool_size()
     if isinstance(pool, bool) or not isinstance(pool, (int, np.integer)) or not 2 <= pool <= 999:
         raise SynthError(f"an actor pool of {pool!r} cannot make pairs", fix="pass --actors from 2 to 999")
@@ -423,7 +428,7 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
     """Plan (:func:`plan_synthetic`) and make a synthetic dataset in ``workspace`` (created if
     missing); see the module docstring for the two ``path`` values. ``export``: the export folder
     (required for ``ground-truth``; with ``full``, the takes fitted so far are exported).
-    ``files`` (ground-truth path): ``files(ws, plan, actors, render, log)`` yields ``(t, made)`` for
+    ``files`` (ground-truth path): ``files(ws, plan, actors, render, log, max_draws=N)`` yields ``(t, made)`` for
     every planned take in plan order, ``made`` as :func:`ground_truth_files` returns it (default: made
     here, one after the other; :func:`dualhuman_builder.batch.synth.make_synthetic` makes them in
     worker processes).
@@ -443,6 +448,9 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
                          fix="pass --export OUT (a new or empty folder, or an earlier export to update)")  # fmt: skip
     plan = plan_synthetic(options)
     render = options.render_settings()
+    if options.max_draws != MAX_DRAWS and path != "ground-truth":
+        raise SynthError("--max-draws bounds the ground-truth path's scene draws; the full path's scene stage draws "
+                         f"up to {MAX_DRAWS}", fix="pass --path ground-truth, or leave --max-draws out")  # fmt: skip
     if render is not None and path != "ground-truth":
         raise SynthError("--render renders the ground-truth path's scenes; the full path renders its fitted takes in "
                          "`dualhuman run`", fix="pass --path ground-truth, or leave --render out")  # fmt: skip
@@ -467,10 +475,10 @@ def make_synthetic(workspace: str | Path, options: SynthOptions, *, path: str = 
         else:
             items = []
             if files is not None:
-                made = files(ws, plan, actors, render, log)
+                made = files(ws, plan, actors, render, log, max_draws=options.max_draws)
             else:
-                made = ((t, ground_truth_files(ws.root, t, [actors[a][1] for a in t["actors"]], model, log, render))
-                        for t in plan["takes"])  # fmt: skip
+                made = ((t, ground_truth_files(ws.root, t, [actors[a][1] for a in t["actors"]], model, log, render,
+                                               max_draws=options.max_draws)) for t in plan["takes"])  # fmt: skip
             for k, (t, m) in enumerate(made, 1):
                 item = _ground_truth_item(ws, t, m, say, f"[{k}/{n}]", result, render=render)
                 if item is not None:
@@ -564,14 +572,17 @@ def _annotate_from_scene(ws, take: str, t: dict) -> None:
 
 
 def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None, log: Callable[[str], None] = print,
-                       render: dict | None = None) -> dict[str, Any]:  # fmt: skip
+                       render: dict | None = None, max_draws: int = MAX_DRAWS) -> dict[str, Any]:  # fmt: skip
     """Make planned take ``t``'s files of the ground-truth path under the workspace ``root``: its
     scene (``WS/synth/scenes/TAKE-gN.npz``, kept when made before with the same parameters) and,
     with ``render``, its render (:func:`_render_ground_truth`). ``shapes``: the pair's anny
     phenotypes, in the take's actor order. Files only, no catalog: so that worker processes can
     make many takes at once (:mod:`dualhuman_builder.batch.synth`). Returns ``{"take", "generated"
     (bool), "scene_s", "render_s"}`` (``render_s`` None when not rendered now), or with ``failed``
-    (the reason) when no draw met the scene's quality contract or the scene refused its parameters."""
+    (the reason) when no draw met the scene's quality contract or the scene refused its parameters.
+    A scene's generation is deterministic, so such a failure is recorded beside the scene
+    (``TAKE-gN.failed.json``, with the parameters and ``max_draws``) and answered again, without
+    drawing, until it is asked for with other parameters or more draws."""
     from dualhuman_builder.errors import FormatError
     from dualhuman_builder.sim.generate import generate_scene
     from dualhuman_builder.sim.scenes import GENERATOR_VERSION, Scene, SceneParams, _params_dict
@@ -590,14 +601,25 @@ def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None
             scene = None
     out: dict[str, Any] = {"take": take, "generated": scene is None, "scene_s": 0.0, "render_s": None}
     if scene is None:
+        memo = file.with_name(f"{file.stem}.failed.json")
+        asked = json.loads(json.dumps(_params_dict(params)))
+        try:
+            before = json.loads(memo.read_text())
+        except (OSError, ValueError):
+            before = None
+        if isinstance(before, dict) and before.get("params") == asked and before.get("max_draws", 0) >= max_draws:
+            return {**out, "failed": f"{before.get('error')} (failed before: {memo.name}; delete it to draw again)"}
         if model is None:
             from dualhuman_builder.body.model import get_body_model
 
             model = get_body_model()
         try:
-            scene = generate_scene(params, model=model, log=log)
+            scene = generate_scene(params, model=model, log=log, max_draws=max_draws)
         except ValueError as e:  # no draw met the contract (SceneContractError), or the scene refused its parameters
-            return {**out, "failed": getattr(e, "message", str(e))}
+            error = getattr(e, "message", str(e))
+            memo.parent.mkdir(parents=True, exist_ok=True)
+            memo.write_text(json.dumps({"params": asked, "max_draws": max_draws, "error": error}, indent=1))
+            return {**out, "failed": error}
         file.parent.mkdir(parents=True, exist_ok=True)
         scene.save(file)
     out["scene_s"] = time.perf_counter() - t1

@@ -105,6 +105,7 @@ def test_hold_outs_put_actors_and_types_in_test_only():
     (dict(takes=2, actors=4, hold_out_actors=4), "cannot hold out 4 of 4"),
     (dict(takes=3, types=("hug",), hold_out_types=("hug",)), "train split would be empty"),
     (dict(takes=2, long_duration=5.0), "out of range"),
+    (dict(takes=2, max_draws=0), "max draws 0 is out of range"),
 ])  # fmt: skip
 def test_invalid_options_are_refused_with_a_fix(options, words):
     with pytest.raises(SynthError, match=words) as e:
@@ -219,10 +220,11 @@ def test_ground_truth_path_needs_an_export_folder(tmp_path):
 def test_cli_plans_resumes_and_reports_errors(ground_truth):
     import dualhuman_builder.cli.synth  # noqa: F401  (registers the command)
     from dualhuman_builder.cli import main
+    from dualhuman_builder.cli.synth import MAX_DRAWS as cli_max_draws
     from dualhuman_builder.cli.synth import SYNTH_TYPES
-    from dualhuman_builder.sim.scenes import SCENE_TYPES
+    from dualhuman_builder.sim.scenes import MAX_DRAWS, SCENE_TYPES
 
-    assert SYNTH_TYPES == SCENE_TYPES
+    assert SYNTH_TYPES == SCENE_TYPES and cli_max_draws == MAX_DRAWS
     ws, out, _ = ground_truth
     args = ["synth", str(ws), "--takes", "2", "--seed", "3", "--types", "handshake,high_five", "--fps", str(FPS),
             "--long-share", "0", "--hold-out-types", "high_five"]  # fmt: skip
@@ -281,7 +283,8 @@ def test_full_path_makes_the_first_stages_and_resumes(tmp_path, body_model):
 def test_a_take_whose_scene_is_refused_is_reported_failed_and_the_others_go_on(ground_truth, body_model):
     from dualhuman_builder.batch.synth import GROUND_TRUTH_TASK, _in_workers
     from dualhuman_builder.batch.worker import TASK_KINDS
-    from dualhuman_builder.sim.synth import SynthResult, _ground_truth_item, _register_actors
+    from dualhuman_builder.sim.scenes import GENERATOR_VERSION, MAX_DRAWS
+    from dualhuman_builder.sim.synth import SynthResult, _ground_truth_item, _register_actors, ground_truth_files
     from dualhuman_builder.workspace import Workspace
 
     ws_root, _, _ = ground_truth
@@ -296,6 +299,16 @@ def test_a_take_whose_scene_is_refused_is_reported_failed_and_the_others_go_on(g
     assert items[0] is None and items[1].seq_id == plan["takes"][1]["take"] and result.skipped == [items[1].seq_id]
     assert "made before" in lines[1]
     assert TASK_KINDS[GROUND_TRUTH_TASK] == "dualhuman_builder.batch.synth:ground_truth_task"
+    # the failure is recorded and answered again without drawing, until more draws are asked for
+    shapes = [actors[a][1] for a in bad["actors"]]
+    memo = ws_root / "synth" / "scenes" / f"BAD-g{GENERATOR_VERSION}.failed.json"
+    assert json.loads(memo.read_text())["max_draws"] == MAX_DRAWS
+    again = ground_truth_files(ws_root, bad, shapes, model=None, log=lambda m: None)
+    assert "failed before" in again["failed"] and "approach distance 0.20 m" in again["failed"]
+    more = ground_truth_files(ws_root, bad, shapes, model=body_model, log=lambda m: None, max_draws=MAX_DRAWS + 1)
+    assert "failed before" not in more["failed"] and json.loads(memo.read_text())["max_draws"] == MAX_DRAWS + 1
+    other = {**bad, "approach_distance_m": 0.25}  # other parameters are drawn afresh
+    assert "failed before" not in ground_truth_files(ws_root, other, shapes, model=body_model, log=lambda m: None)["failed"]
 
 
 def test_export_synth_split_needs_a_plan(tmp_path):
