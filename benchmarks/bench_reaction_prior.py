@@ -64,6 +64,23 @@ def _test_sequences(export: Path, split: str) -> list[tuple[str, np.ndarray, np.
     return out
 
 
+def _dataset(export: Path) -> dict:
+    """What the figures were measured on: the split's sizes and, for an export of `dualhuman synth`, the
+    plan's arguments that shape the data (types, hold-outs, frame rate, seed) and the takes it lost."""
+    from dualhuman_builder.export.files import read_manifest
+    from dualhuman_builder.models.data import split_ids
+
+    manifest = read_manifest(export)
+    out = {split: len(split_ids(export, manifest, split)) for split in ("train", "test")}
+    synth = manifest.get("synth")
+    if isinstance(synth, dict):
+        a = synth.get("arguments", {})
+        out["synth"] = {k: a.get(k) for k in ("takes", "seed", "types", "fps", "hold_out_actors", "hold_out_types",
+                                               "long_share", "takes_per_day")}  # fmt: skip
+        out["synth"]["failed"] = len(synth.get("failed") or {})
+    return out
+
+
 def _refinement(module, seqs, config: dict, window: int, iterations: int, lambda_prior: float, device: str) -> dict:
     from dualhuman_builder.models import metrics
     from dualhuman_builder.models.reaction_prior.refine import corrupt_sequence, refine_sequences
@@ -248,6 +265,7 @@ def main() -> None:
                             for n in variants if n != "full"}  # fmt: skip
     figures["seconds"] = time.perf_counter() - t0
     figures["test_sequences"] = len(seqs)
+    figures["dataset"] = _dataset(export)
     goals = [Goal("variants.full.refine.mpjpe_reduction.mean", ">=", 0.25, "", "refinement's MPJPE cut, full model")]
     goals += [Goal(f"beats.{n}", ">=", 1, "", f"full model refines better than {n}") for n in variants if n != "full"]
     goals.append(Goal("refine_export.verify_problems", "<=", 0, "", "refined export passes `export verify`"))
