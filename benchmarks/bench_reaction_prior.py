@@ -174,6 +174,7 @@ def _train_and_score(job: tuple, seqs: list | None = None) -> dict:
     train_s = time.perf_counter() - t
     module = load_run(run, device=c["device"])[2]
     summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+    train_s = summary.get("time_s", train_s)  # the run's own: a finished run given again is scored, not retrained
     t = time.perf_counter()
     refine = _refinement(module, seqs, module.config, window, c["iterations"], c["lambda_prior"], c["device"])
     rec = {"refine": refine, "refine_s": time.perf_counter() - t,

@@ -168,6 +168,16 @@ def test_frechet_distance_of_a_set_with_itself_is_zero_and_symmetric(seed, dims)
     assert ab > -1e-9
 
 
+def test_frechet_distance_scales_with_the_units_of_a_low_rank_set():
+    # A decoder's outputs span few dimensions (a singular covariance), and in mm the covariances are
+    # large: sqrtm's rounding then leaves imaginary residues well above 1e-3 in absolute terms. FD is
+    # quadratic in the units, so the same sets in units 1000 times smaller give FD / 1e6.
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(500, 4)) @ rng.normal(size=(4, 30))
+    b = rng.normal(size=(400, 30))
+    assert M.frechet_distance(a * 1e3, b * 1e3) == pytest.approx(1e6 * M.frechet_distance(a, b), rel=1e-6)
+
+
 def test_joint_positions_fd_hand_case():
     # Set 2 is set 1 with every joint moved 1 mm along x: the covariances are equal, the means differ
     # by 1 mm in each of the J = 2 x-coordinates: FD = 2 * 1^2 = 2 mm^2. Frames are the samples, so the
