@@ -622,6 +622,7 @@ def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None
             return {**out, "failed": error}
         file.parent.mkdir(parents=True, exist_ok=True)
         scene.save(file)
+        memo.unlink(missing_ok=True)  # made with more draws than a record of failure had
     out["scene_s"] = time.perf_counter() - t1
     if render is not None:
         seq = Scene.load(file).sequence

@@ -113,6 +113,12 @@ def test_invalid_options_are_refused_with_a_fix(options, words):
     assert e.value.fix
 
 
+def test_max_draws_is_refused_on_the_full_path(tmp_path):
+    with pytest.raises(SynthError, match="--max-draws bounds the ground-truth path") as e:
+        make_synthetic(tmp_path / "ws", SynthOptions(takes=2, max_draws=3), path="full")
+    assert "--path ground-truth" in e.value.fix and not (tmp_path / "ws").exists()
+
+
 def test_hold_outs_that_leave_test_empty_are_refused():
     # one take and a large pool: for some seed the held-out actor is in no take
     refused = []
