@@ -201,8 +201,9 @@ def frechet_distance_from_stats(mu1: Any, sigma1: Any, mu2: Any, sigma2: Any, ep
     matrix square root by ``scipy.linalg.sqrtm``; where it is not finite (a singular product), again
     with ``eps`` added to both diagonals; an imaginary part left by rounding is dropped, one larger
     than 1e-3 on the diagonal is an error. That bound is T2M-GPT's for its unit-scale features; here it
-    scales with the largest diagonal entry above 1, so that joint positions in mm (covariances of
-    ~1e5 mm², rounding residues of ~1e-2) are not refused. Units: those of the features, squared."""
+    scales with the largest diagonal entry above 1, because the residue grows with the covariance:
+    joint positions in mm from a decoder (a near-singular covariance) were refused by the absolute
+    bound. Units: those of the features, squared."""
     mu1, mu2 = np.atleast_1d(as_array(mu1, "mu1")), np.atleast_1d(as_array(mu2, "mu2"))
     s1, s2 = np.atleast_2d(as_array(sigma1, "sigma1")), np.atleast_2d(as_array(sigma2, "sigma2"))
     D = mu1.shape[0]

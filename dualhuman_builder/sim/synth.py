@@ -591,18 +591,18 @@ def ground_truth_files(root: str | Path, t: dict, shapes: list[dict], model=None
     params = SceneParams(shapes=(dict(shapes[0]), dict(shapes[1])), names=tuple(t["actors"]), **_scene_params(t))
     file = root / SCENES_DIR / f"{take}-g{GENERATOR_VERSION}.npz"  # another generator makes other scenes
     t1 = time.perf_counter()
+    asked = json.loads(json.dumps(_params_dict(params)))  # as a file stores them
     scene = None
     if file.exists():
         try:
             scene = Scene.load(file)
         except (FormatError, OSError, ValueError, KeyError):
             scene = None
-        if scene is not None and _params_dict(scene.params) != json.loads(json.dumps(_params_dict(params))):
+        if scene is not None and _params_dict(scene.params) != asked:
             scene = None
     out: dict[str, Any] = {"take": take, "generated": scene is None, "scene_s": 0.0, "render_s": None}
     if scene is None:
         memo = file.with_name(f"{file.stem}.failed.json")
-        asked = json.loads(json.dumps(_params_dict(params)))
         try:
             before = json.loads(memo.read_text())
         except (OSError, ValueError):
