@@ -6,7 +6,10 @@ replaced by an MLP, without noise augmentation) and each training seed, the prio
 export's train split (`models.training.train`; the two generator ablations start from the full run's VAE
 of the same seed and train only the generator, unless `--own-vae`), then every test sequence's reactor is corrupted by the
 visibility-driven noise (`reaction_prior.noise`, the same draw for every variant and seed) and refined
-with the prior (`reaction_prior.refine`: windows of 64, half overlap, lambda_prior 0.01). Figures, as
+with the prior (`reaction_prior.refine`: windows of 64, half overlap, lambda_prior 0.01). With
+`--choose-lambda`, the prior trains on the `fit` split instead, each run refines the `validation` split
+(people it never saw; `models.data.validation_subjects`) at each candidate weight, and each variant is
+scored on the test split at the weight with its lowest validation MPJPE (mean over seeds). Figures, as
 mean ± std over seeds: MPJPE (root-relative), PA-MPJPE and translation (pelvis) error of the reactor
 before and after, in mm (`models.metrics`), and the weighted prior term's share of the objective at the
 last step (how much the prior, rather than the observation, steers the result). Reaction generation: the reactor decoded from the prior's
@@ -16,6 +19,7 @@ training windows/s and the loader's share of a step, from the run's summary. A r
 written once with `refine_export` and checked with `export verify`.
 
     python benchmarks/bench_reaction_prior.py --export WS/export --seeds 3          # the experiment
+    python benchmarks/bench_reaction_prior.py --export WS/export --choose-lambda 0.01,0.1,1,10,100,1000
     python benchmarks/bench_reaction_prior.py --quick --out /tmp/rp.json            # a tiny check
 """
 
@@ -155,34 +159,60 @@ def _mean_std(values: list[dict]) -> dict:
     return out
 
 
-def _train_and_score(job: tuple, seqs: list | None = None) -> dict:
-    """Train one ``(variant, seed)`` and score it (refinement, generation, speed); a process of its own with ``--jobs``."""
+def _train(job: tuple) -> dict:
+    """Train one ``(variant, seed)`` (a finished run is kept) and, with ``--choose-lambda``, refine the
+    validation split at each candidate weight; a process of its own with ``--jobs``."""
     from dualhuman_builder.models.training import load_run, train
 
     name, seed, c = job
     shared = name in SHARES_VAE and c["share_vae"]  # the generator ablations train on the full run's VAE
     if c["threads"] > 0:
         torch.set_num_threads(c["threads"])
-    export, window = Path(c["export"]), c["window"]
-    seqs = seqs if seqs is not None else _test_sequences(export, "test")
-    run = Path(c["work"]) / f"{name}-s{seed}"
+    export, run = Path(c["export"]), Path(c["work"]) / f"{name}-s{seed}"
     t = time.perf_counter()
     train("reaction-prior", export, run, config_overrides={**c["overrides"], **VARIANTS[name],
                                                           **({"vae_from": str(Path(c["work"]) / f"full-s{seed}")} if shared else {})},
           steps_scale=c["steps_scale"], batch_size=c["batch_size"], seed=seed, device=c["device"],
-          progress=False)  # fmt: skip
-    train_s = time.perf_counter() - t
-    module = load_run(run, device=c["device"])[2]
+          progress=False, split=c["train_split"])  # fmt: skip
     summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
-    train_s = summary.get("time_s", train_s)  # the run's own: a finished run given again is scored, not retrained
-    t = time.perf_counter()
-    refine = _refinement(module, seqs, module.config, window, c["iterations"], c["lambda_prior"], c["device"])
-    rec = {"refine": refine, "refine_s": time.perf_counter() - t,
-           "generation": _generation(module, seqs, window, c["device"]), "train_s": train_s,
+    rec = {"train_s": summary.get("time_s", time.perf_counter() - t),  # the run's own: a finished run is not retrained
            "windows_per_s": summary.get("windows_per_s"), "loader_share": summary.get("loader_share")}  # fmt: skip
-    print(f"{name} seed {seed}: MPJPE {refine['before']['mpjpe_mm']:.1f} -> {refine['after']['mpjpe_mm']:.1f} mm, "
-          f"trained in {train_s:.0f} s", flush=True)  # fmt: skip
+    if c["lambdas"]:
+        module = load_run(run, device=c["device"])[2]
+        val = _test_sequences(export, "validation")
+        rec["validation"] = {_lam_key(lam): _refinement(module, val, module.config, c["window"], c["iterations"], lam,
+                                                     c["device"])["after"]["mpjpe_mm"] for lam in c["lambdas"]}  # fmt: skip
     return rec
+
+
+def _score(job: tuple, seqs: list | None = None) -> dict:
+    """Score one trained ``(variant, seed)`` on the test split at ``lambda_prior``: refinement,
+    generation; a process of its own with ``--jobs``."""
+    from dualhuman_builder.models.training import load_run
+
+    name, seed, c, lam = job
+    if c["threads"] > 0:
+        torch.set_num_threads(c["threads"])
+    seqs = seqs if seqs is not None else _test_sequences(Path(c["export"]), "test")
+    module = load_run(Path(c["work"]) / f"{name}-s{seed}", device=c["device"])[2]
+    t = time.perf_counter()
+    refine = _refinement(module, seqs, module.config, c["window"], c["iterations"], lam, c["device"])
+    rec = {"refine": refine, "refine_s": time.perf_counter() - t, "lambda_prior": lam,
+           "generation": _generation(module, seqs, c["window"], c["device"])}  # fmt: skip
+    print(f"{name} seed {seed}: MPJPE {refine['before']['mpjpe_mm']:.1f} -> {refine['after']['mpjpe_mm']:.1f} mm "
+          f"at lambda_prior {lam:g}", flush=True)  # fmt: skip
+    return rec
+
+
+def _lam_key(lam: float) -> str:
+    """A weight as a key of the results file, without the dot a figure's path would split at: 0.01 -> 0_01."""
+    return f"{lam:g}".replace(".", "_")
+
+
+def _choose_lambda(recs: dict, name: str, seeds: int, lambdas: list[float]) -> float:
+    """The candidate weight with the lowest validation MPJPE after refinement, mean over seeds."""
+    sweep = {lam: float(np.mean([recs[(name, s)]["validation"][_lam_key(lam)] for s in range(seeds)])) for lam in lambdas}
+    return min(sweep, key=sweep.get)
 
 
 def main() -> None:
@@ -193,7 +223,10 @@ def main() -> None:
     ap.add_argument("--steps-scale", type=float, default=1.0)
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--iterations", type=int, default=100, help="refinement steps per window")
-    ap.add_argument("--lambda-prior", type=float, default=0.01)
+    ap.add_argument("--lambda-prior", type=float, default=0.01, help="refinement's prior weight (without --choose-lambda)")
+    ap.add_argument("--choose-lambda", default="", metavar="L1,L2,...",
+                    help="train on the `fit` split, refine the `validation` split at each weight, and score the test "
+                         "split at each variant's best (mean over seeds)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="config override for every variant")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default; 1 with --jobs)")
@@ -233,19 +266,27 @@ def main() -> None:
               "iterations": args.iterations, "lambda_prior": args.lambda_prior,
               "threads": args.threads if args.jobs == 1 else max(1, args.threads)}  # fmt: skip
     common["share_vae"] = "full" in variants and not args.own_vae
+    lambdas = [float(x) for x in args.choose_lambda.split(",") if x.strip()]
+    common.update(lambdas=lambdas, train_split="fit" if lambdas else "train")
     # first the runs that train a VAE (or none), then the ablations that take the full run's
     waves = [[j for j in jobs if not (common["share_vae"] and j[0] in SHARES_VAE)],
              [j for j in jobs if common["share_vae"] and j[0] in SHARES_VAE]]  # fmt: skip
-    recs = {}
-    if args.jobs > 1:  # one training per process, each on its own thread(s); the figures do not depend on it
+    def run_waves(fn, waves) -> dict:
+        if args.jobs == 1:
+            return {j[:2]: fn(j, seqs) if fn is _score else fn(j) for wave in waves for j in wave}
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        out = {}
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for wave in waves:
-                recs.update(zip(wave, pool.map(_train_and_score, [(n, s, common) for n, s in wave])))
-    else:
-        recs = {(n, s): _train_and_score((n, s, common), seqs) for wave in waves for n, s in wave}
+            for wave in waves:  # one training per process, each on its own thread(s); the figures do not depend on it
+                out.update(zip((j[:2] for j in wave), pool.map(fn, wave)))
+        return out
+
+    trained = run_waves(_train, [[(n, s, common) for n, s in wave] for wave in waves])
+    chosen = {n: _choose_lambda(trained, n, args.seeds, lambdas) if lambdas else args.lambda_prior for n in variants}
+    scored = run_waves(_score, [[(n, s, common, chosen[n]) for n, s in jobs]])
+    recs = {j: {**trained[j], **scored[j]} for j in jobs}
     for name in variants:
         per_seed = []
         for seed in range(args.seeds):
@@ -253,10 +294,11 @@ def main() -> None:
             figures["runs"][f"{name}-s{seed}"] = rec
             per_seed.append({k: v for k, v in rec.items() if v is not None})
         figures["variants"][name] = _mean_std(per_seed)
+        figures["variants"][name]["lambda_prior"] = chosen[name]
     if "full" in variants:
         full_run = work / "full-s0"
         t = time.perf_counter()
-        summary = refine_export(full_run, export, work / "refined", window=window, lambda_prior=args.lambda_prior,
+        summary = refine_export(full_run, export, work / "refined", window=window, lambda_prior=chosen["full"],
                                 iterations=args.iterations, device=args.device, progress=False)  # fmt: skip
         figures["refine_export"] = {"seconds": time.perf_counter() - t, "sequences": summary["sequences"],
                                     "windows": summary["windows"],
@@ -266,6 +308,8 @@ def main() -> None:
                             for n in variants if n != "full"}  # fmt: skip
     figures["seconds"] = time.perf_counter() - t0
     figures["test_sequences"] = len(seqs)
+    if lambdas:
+        figures["validation_sequences"] = len(_test_sequences(export, "validation"))
     figures["dataset"] = _dataset(export)
     goals = [Goal("variants.full.refine.mpjpe_reduction.mean", ">=", 0.25, "", "refinement's MPJPE cut, full model")]
     goals += [Goal(f"beats.{n}", ">=", 1, "", f"full model refines better than {n}") for n in variants if n != "full"]
@@ -275,18 +319,22 @@ def main() -> None:
     def row(n: str, cells) -> list[str]:
         return [n, *(f"variants.{n}.{c}" for c in cells)]
 
-    refine_cells = ("refine.before.mpjpe_mm", "refine.after.mpjpe_mm", "refine.mpjpe_reduction", "refine.after.pa_mpjpe_mm",
+    refine_cells = ("lambda_prior", "refine.before.mpjpe_mm", "refine.after.mpjpe_mm", "refine.mpjpe_reduction", "refine.after.pa_mpjpe_mm",
                     "refine.before.translation_mm", "refine.after.translation_mm", "refine.prior_share")  # fmt: skip
     gen_cells = ("generation.fd_mm2", "generation.diversity_mm", "generation.mpjpe_mm", "generation.penetration_mean_mm",
                  "generation.contact_f1")  # fmt: skip
     tables = [Table("Refinement of the corrupted test reactors (mm; mean ± std over seeds)",
-                    ["variant", "MPJPE before", "MPJPE after", "MPJPE cut", "PA-MPJPE after", "translation before",
+                    ["variant", "λ_prior", "MPJPE before", "MPJPE after", "MPJPE cut", "PA-MPJPE after", "translation before",
                      "translation after", "prior's share of the objective"], [row(n, refine_cells) for n in variants]),
               Table("Reaction generation from the actor alone, test windows (mean ± std over seeds)",
                     ["variant", "FD (mm²)", "diversity (mm)", "MPJPE (mm)", "penetration (mm)", "contact F1"],
                     [row(n, gen_cells) for n in variants]),
               Table("Training", ["variant", "seconds", "windows/s", "loader share"],
                     [row(n, ("train_s", "windows_per_s", "loader_share")) for n in variants])]  # fmt: skip
+    if lambdas:
+        tables.insert(0, Table("λ_prior chosen on the validation split: MPJPE after refinement (mm; mean ± std over seeds)",
+                               ["variant", *(f"λ = {lam:g}" for lam in lambdas)],
+                               [row(n, [f"validation.{_lam_key(lam)}" for lam in lambdas]) for n in variants]))  # fmt: skip
     notes = ("--quick: tiny export and model; the figures check the script, they measure nothing."
              if args.quick else "")  # fmt: skip
     path = write_results("reaction_prior", figures, params={**vars(args), "overrides": overrides}, goals=goals,

@@ -34,9 +34,13 @@ _DEVICE = click.Choice(["cpu", "cuda"])
               help="Stop after this many steps of the whole run (a checkpoint is written); run again to continue.")
 @click.option("--tensorboard/--no-tensorboard", default=None,
               help="Also log to RUN/tensorboard (default: when tensorboard is installed).")
+@click.option("--split", type=click.Choice(["train", "fit"]), default="train", show_default=True,
+              help="Train on the whole train split, or on `fit`: the train split without the people of the "
+                   "`validation` split, to choose settings on people the model never saw (`evaluate --split validation`).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress display.")
 def train(model: str, dataset: Path, out: Path, steps_scale: float, batch_size: int, seed: int, device: str,
-          amp: bool | None, settings: tuple[str, ...], max_steps: int | None, tensorboard: bool | None, progress: bool):  # fmt: skip
+          amp: bool | None, settings: tuple[str, ...], max_steps: int | None, tensorboard: bool | None, split: str,
+          progress: bool):  # fmt: skip
     """Train MODEL on the train split of DATASET (a `dualhuman export` folder) into the run folder --out.
 
     Every phase of the model runs in order (the reaction prior: its motion VAE, then its invertible
@@ -52,6 +56,7 @@ def train(model: str, dataset: Path, out: Path, steps_scale: float, batch_size: 
       dualhuman train reaction-prior OUT --out runs/prior
       dualhuman train reaction-prior OUT --out runs/quick --steps-scale 0.05
       dualhuman train reaction-prior OUT --out runs/gpu --device cuda
+      dualhuman train reaction-prior OUT --out runs/fit --split fit   # then: evaluate ... --split validation
     """
     from dualhuman_builder.models.training import parse_set
     from dualhuman_builder.models.training import train as run_training
@@ -60,7 +65,7 @@ def train(model: str, dataset: Path, out: Path, steps_scale: float, batch_size: 
     try:
         run = run_training(model, dataset, out, config_overrides=overrides, steps_scale=steps_scale, batch_size=batch_size,
                            seed=seed, device=device, amp=amp, progress=progress, max_steps=max_steps,
-                           tensorboard=tensorboard)  # fmt: skip
+                           tensorboard=tensorboard, split=split)  # fmt: skip
     except KeyboardInterrupt:
         console.print(f"interrupted; the checkpoint in {out} continues the run with the same command", highlight=False)
         sys.exit(130)
@@ -88,8 +93,9 @@ def _print_summary(summary: dict, run: Path) -> None:
 @main.command()
 @click.argument("run", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.argument("dataset", type=click.Path(file_okay=False, exists=True, path_type=Path))
-@click.option("--split", type=click.Choice(["test", "train", "all"]), default="test", show_default=True,
-              help="Which split of DATASET to measure on.")
+@click.option("--split", type=click.Choice(["test", "train", "all", "fit", "validation"]), default="test",
+              show_default=True, help="Which split of DATASET to measure on (`fit` and `validation` divide the train split "
+                                      "by people; see `train --split`).")
 @click.option("--batch-size", type=click.IntRange(min=1), default=64, show_default=True, help="Windows per batch.")
 @click.option("--device", type=_DEVICE, default="cpu", show_default=True, help="Where to run the model.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random draws the model's figures make.")

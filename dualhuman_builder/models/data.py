@@ -51,8 +51,52 @@ def _visibility(key: tuple, ja: np.ndarray, jb: np.ndarray, cameras: int) -> tup
     return vis
 
 
+#: The splits a model reads: the export's ``train`` and ``test``, ``all``, and ``fit`` / ``validation``,
+#: which divide the train split by people (:func:`validation_subjects`).
+SPLITS = ("train", "test", "all", "fit", "validation")
+#: The validation split's least share of the train split's sequences.
+VALIDATION_SHARE = 0.15
+
+
+def validation_subjects(manifest: dict[str, Any], train_ids: Sequence[str]) -> list[str]:
+    """The people whose train sequences form the ``validation`` split: subjects taken in the order of
+    their names' SHA-256 until the train sequences with any of them reach :data:`VALIDATION_SHARE`.
+
+    A sequence with one validation person and one other goes to validation, so the ``fit`` split
+    never sees a validation person: a setting chosen on ``validation`` (a refinement weight, a
+    checkpoint) is chosen on people the model did not train on, and the test split stays untouched.
+    The order depends on the names alone, so every run over the same export holds out the same people.
+    """
+    seqs = manifest.get("sequences", {})
+    subjects = {sid: {str(x) for x in (seqs.get(sid, {}).get("subjects") or []) if x} for sid in train_ids}
+    names = sorted({x for v in subjects.values() for x in v}, key=lambda x: hashlib.sha256(x.encode()).hexdigest())
+    chosen: list[str] = []
+    held = 0
+    for name in names:
+        if held >= VALIDATION_SHARE * len(train_ids):
+            break
+        chosen.append(name)
+        held = sum(1 for v in subjects.values() if v & set(chosen))
+    return chosen
+
+
+def _fit_or_validation(folder: Path, manifest: dict[str, Any], split: str) -> list[str]:
+    train = split_ids(folder, manifest, "train")
+    chosen = set(validation_subjects(manifest, train))
+    seqs = manifest["sequences"]
+    held = [sid for sid in train if chosen & {str(x) for x in (seqs[sid].get("subjects") or [])}]
+    held_set = set(held)
+    fit = [sid for sid in train if sid not in held_set]
+    if not chosen or not held or not fit:
+        why = ("its manifest names no subjects" if not chosen else
+               "every train sequence shares a person with the validation set")  # fmt: skip
+        raise DualhumanError(f"{folder}: the train split cannot be divided into fit and validation by people ({why})",
+                             fix="train on the train split, or export more people (`dualhuman export` records each sequence's subjects)")  # fmt: skip
+    return held if split == "validation" else fit
+
+
 def split_ids(folder: Path, manifest: dict[str, Any], split: str) -> list[str]:
-    """The sequence ids of ``split`` (``train``, ``test`` or ``all``) of the export at ``folder``."""
+    """The sequence ids of ``split`` (one of :data:`SPLITS`) of the export at ``folder``."""
     seqs = manifest.get("sequences")
     if not isinstance(seqs, dict):
         raise DualhumanError(f"{folder}/manifest.json lists no sequences", fix=_FIX_EXPORT)
@@ -61,9 +105,11 @@ def split_ids(folder: Path, manifest: dict[str, Any], split: str) -> list[str]:
         for sid in ids:
             _check_id(folder, sid)
         return ids
+    if split in ("fit", "validation"):
+        return _fit_or_validation(folder, manifest, split)
     files = manifest.get("split", {}).get("files", {}) if isinstance(manifest.get("split"), dict) else {}
     if split not in ("train", "test") or split not in files:
-        raise DualhumanError(f"unknown split {split!r} in {folder}", fix="choose train, test or all")
+        raise DualhumanError(f"unknown split {split!r} in {folder}", fix="choose one of " + ", ".join(SPLITS))
     rel = files[split]
     data = read_confined(folder, rel, MAX_TEXT_BYTES, f"split file {rel!r:.200} of {folder}")
     ids = [s.strip() for s in data.decode("utf-8", errors="replace").splitlines() if s.strip()]
@@ -112,7 +158,7 @@ def read_sequence(folder: Path, sid: str) -> tuple[dict[str, np.ndarray], dict[s
 class InteractionWindows(Dataset):
     """Windows of both people of one split of an export (module docstring).
 
-    ``export_dir``: the export folder. ``split``: ``train``, ``test`` or ``all``. ``window``: frames per
+    ``export_dir``: the export folder. ``split``: one of :data:`SPLITS`. ``window``: frames per
     window; ``stride``: frames between window starts (default ``window // 2``). ``visibility``: compute
     the ring visibility (False: ones, for models that ignore it; saves the time). ``cameras``: cameras
     on the ring. ``seed``: which of a sequence's texts an item carries (with :meth:`set_epoch`).

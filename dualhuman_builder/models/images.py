@@ -93,7 +93,7 @@ def _crop_box(box: np.ndarray, kp: np.ndarray, width: int, height: int) -> tuple
 class ImageFrames:
     """Rendered frames of one split of an export with their targets (module docstring).
 
-    ``export_dir``: the export folder. ``split``: ``train``, ``test`` or ``all``. ``size``: side ``S`` of
+    ``export_dir``: the export folder. ``split``: one of :data:`~dualhuman_builder.models.data.SPLITS`. ``size``: side ``S`` of
     the square images (pixels). ``augment``: flip and crop jitter (module docstring). ``seed``: of the
     augmentation draws (with :meth:`set_epoch`). ``views``: camera names to use (None: every rendered
     view). ``cache_mb``: decoded image regions kept in memory.

@@ -304,8 +304,9 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
           config_overrides: dict[str, Any] | None = None, steps_scale: float = 1.0, batch_size: int = 32, seed: int = 0,
           device: str = "cpu", amp: bool | None = None, resume: bool = True,
           progress: bool | Callable[[dict[str, Any]], None] = True, max_steps: int | None = None,
-          tensorboard: bool | None = None, checkpoint_every: int | None = None) -> Path:  # fmt: skip
-    """Train a model on the train split of an export; returns the run folder ``out_dir``.
+          tensorboard: bool | None = None, checkpoint_every: int | None = None, split: str = "train") -> Path:  # fmt: skip
+    """Train a model on a split of an export (``train``; ``fit`` to keep ``validation`` unseen, see
+    :func:`~dualhuman_builder.models.data.validation_subjects`); returns the run folder ``out_dir``.
 
     ``spec_name_or_spec``: a registered name (``reaction-prior``) or a spec. ``config_overrides``:
     settings over the spec's defaults (:func:`merge_config`). ``steps_scale``: multiplies every phase's
@@ -334,18 +335,18 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         "config": config,
         "train": {"batch_size": batch_size, "seed": int(seed), "steps_scale": float(steps_scale)},
         "phases": [{"name": p.name, "steps": p.steps, "lr": p.lr, "weight_decay": p.weight_decay} for p in phases],
-        "export": {"path": str(export_dir.resolve()), "manifest_sha256": digest},
+        "export": {"path": str(export_dir.resolve()), "manifest_sha256": digest, "split": split},
     }
     start = _open_run(run_dir, doc, resume)
     if start is not None and start >= sum(p.steps for p in phases) and (run_dir / runs.SUMMARY).is_file():
         with _Display(progress) as show:
             show.say(f"{run_dir} is complete already ({start} steps)")
         return run_dir  # nothing to do: the run folder stays as it is, byte for byte
-    data = _dataset(export_dir, "train", config, seed, spec)
+    data = _dataset(export_dir, split, config, seed, spec)
     from dualhuman_builder import __version__
 
     doc.update(toolkit_version=__version__, torch_version=torch.__version__, device=str(dev), amp=amp,
-               data={"split": "train", **_data_options(config), **_data_facts(data)})
+               data={"split": split, **_data_options(config), **_data_facts(data)})
     if start is None:
         runs.write_json(run_dir / runs.CONFIG, doc)
 
@@ -460,6 +461,8 @@ def _open_run(run_dir: Path, doc: dict[str, Any], resume: bool) -> int | None:
         if old.get("export", {}).get("manifest_sha256") != doc["export"]["manifest_sha256"]:
             diff.append(f"export: manifest {str(old.get('export', {}).get('manifest_sha256'))[:12]} -> "
                         f"{doc['export']['manifest_sha256'][:12]} (another or a changed dataset)")  # fmt: skip
+        if old.get("export", {}).get("split", "train") != doc["export"]["split"]:
+            diff.append(f"split: {old.get('export', {}).get('split', 'train')} -> {doc['export']['split']}")
         if diff:
             raise DualhumanError(f"{run_dir} holds a run with other settings, so it cannot be continued: " + "; ".join(diff[:8]),
                                  fix="repeat the run's own settings to continue it, or choose another --out")  # fmt: skip
