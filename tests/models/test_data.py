@@ -14,7 +14,8 @@ from tiny_export import make_tiny_export
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.export.files import load_motion
 from dualhuman_builder.models.base import BATCH_KEYS
-from dualhuman_builder.models.data import InteractionWindows, collate
+from dualhuman_builder.export.files import read_manifest
+from dualhuman_builder.models.data import VALIDATION_SHARE, InteractionWindows, collate, split_ids, validation_subjects
 from dualhuman_builder.models.visibility import joint_visibility, ring_cameras
 
 HEAD, PELVIS, R_WRIST, R_ELBOW = 15, 0, 21, 19
@@ -167,6 +168,37 @@ def test_windows_errors_are_clear(export, tmp_path):
         InteractionWindows(export, "val")
     with pytest.raises(DualhumanError, match="window"):
         InteractionWindows(export, window=0)
+
+
+def test_fit_and_validation_divide_the_train_split_by_people(export):
+    m = read_manifest(export)
+    train, fit, val = (split_ids(export, m, s) for s in ("train", "fit", "validation"))
+    assert fit and val and sorted(fit + val) == sorted(train) and not set(fit) & set(val)
+
+    def people(ids):
+        return {x for sid in ids for x in m["sequences"][sid]["subjects"]}
+
+    held = set(validation_subjects(m, train))
+    assert held and held <= people(val) and not held & people(fit)  # the fit never sees a validation person
+    assert len(val) >= VALIDATION_SHARE * len(train)
+    assert split_ids(export, m, "validation") == val and not set(val) & set(split_ids(export, m, "test"))
+    assert InteractionWindows(export, "fit", visibility=False).ids == fit
+
+
+def test_validation_takes_people_until_its_share_is_reached(export):
+    seqs = {f"S{i:02d}": {"subjects": [f"p{i % 10}", f"p{(i + 1) % 10}"]} for i in range(40)}
+    chosen = validation_subjects({"sequences": seqs}, sorted(seqs))
+
+    def held(names):
+        return sum(1 for d in seqs.values() if set(d["subjects"]) & set(names))
+
+    assert held(chosen) >= VALIDATION_SHARE * 40 > held(chosen[:-1])  # enough people, and no one more
+    m = read_manifest(export)
+    for subjects, why in (([], "names no subjects"), (["p0", "p1"], "shares a person")):
+        bad = {**m, "sequences": {sid: {**d, "subjects": subjects} for sid, d in m["sequences"].items()}}
+        with pytest.raises(DualhumanError, match=why) as e:
+            split_ids(export, bad, "fit")
+        assert "train split" in e.value.fix
 
 
 json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.text(max_size=8),

@@ -182,6 +182,19 @@ def test_a_changed_config_is_refused(full_run, export):
         train(TinySpec.name, export, run, seed=4, **FAST)
     with pytest.raises(DualhumanError, match="holds a run already"):
         train(TinySpec.name, export, run, seed=3, resume=False, **FAST)
+    with pytest.raises(DualhumanError, match="split: train -> fit"):
+        train(TinySpec.name, export, run, seed=3, split="fit", **FAST)
+
+
+def test_a_run_on_the_fit_split_never_sees_the_validation_people(export, tmp_path):
+    from dualhuman_builder.export.files import read_manifest
+    from dualhuman_builder.models.data import split_ids
+
+    run = train(TinySpec.name, export, tmp_path / "fit", seed=1, split="fit", max_steps=2, **FAST)
+    data = json.loads((run / "config.json").read_text())["data"]
+    fit = split_ids(export, read_manifest(export), "fit")
+    assert data["split"] == "fit" and data["sequences"] == len(fit) < len(split_ids(export, read_manifest(export), "train"))
+    assert evaluate(run, export, "validation", batch_size=4)["split"] == "validation"
 
 
 def test_options_are_checked(export, tmp_path):
@@ -237,6 +250,11 @@ def test_cli_train_evaluate_and_models(export, tmp_path):
     res = runner.invoke(main, ["evaluate", str(run), str(export), "--json"])
     assert res.exit_code == 0, res.output
     assert json.loads(res.output)["figures"]["l1_m"] > 0
+    res = runner.invoke(main, ["evaluate", str(run), str(export), "--split", "validation", "--json"])
+    assert res.exit_code == 0 and json.loads(res.output)["split"] == "validation", res.output
+    res = runner.invoke(main, ["train", TinySpec.name, str(export), "--out", str(tmp_path / "fit"), "--split", "fit",
+                               "--max-steps", "1", "--batch-size", "4", "--no-progress"])  # fmt: skip
+    assert res.exit_code == 0 and json.loads((tmp_path / "fit" / "config.json").read_text())["data"]["split"] == "fit"
     res = runner.invoke(main, ["models"])
     assert res.exit_code == 0 and TinySpec.name in res.output
     res = runner.invoke(main, ["train", TinySpec.name, str(export), "--out", str(run), "--set", "hidden=5", "--no-progress"])
