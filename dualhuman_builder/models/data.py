@@ -54,6 +54,8 @@ def _visibility(key: tuple, ja: np.ndarray, jb: np.ndarray, cameras: int) -> tup
 #: The splits a model reads: the export's ``train`` and ``test``, ``all``, and ``fit`` / ``validation``,
 #: which divide the train split by people (:func:`validation_subjects`).
 SPLITS = ("train", "test", "all", "fit", "validation")
+#: The splits a model trains on; the image datasets augment these.
+TRAINING_SPLITS = ("train", "fit")
 #: The validation split's least share of the train split's sequences.
 VALIDATION_SHARE = 0.15
 

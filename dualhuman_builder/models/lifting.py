@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from dualhuman_builder.models.base import Phase, register
+from dualhuman_builder.models.data import TRAINING_SPLITS
 
 NAME = "lifting-baseline"
 NUM_JOINTS = 22
@@ -124,7 +125,7 @@ class LiftingBaselineSpec:
         from dualhuman_builder.models.images import ImageFrames
 
         c = {**DEFAULTS, **config}
-        ds = ImageFrames(export_dir, split, size=int(c["size"]), augment=(split == "train"), seed=seed)
+        ds = ImageFrames(export_dir, split, size=int(c["size"]), augment=(split in TRAINING_SPLITS), seed=seed)
         # what the training loop records of its data, where the image dataset does not say it itself
         for key, value in (("num_sequences", len(ds.ids)), ("frames", len(ds)), ("window", 1), ("swapped", []),
                            ("too_short", list(ds.without_renders))):  # fmt: skip

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from dualhuman_builder.models.base import Phase
+from dualhuman_builder.models.data import TRAINING_SPLITS
 from dualhuman_builder.models.pose_estimator.losses import LOSS_DEFAULTS, estimator_losses, gather_people, hungarian, pair_costs, root_relative
 from dualhuman_builder.models.pose_estimator.network import PoseEstimator, to_camera
 
@@ -130,7 +131,7 @@ class PoseEstimatorSpec:
         from dualhuman_builder.models.images import ImageFrames
 
         c = {**DEFAULTS, **config}
-        return ImageFrames(export_dir, split, size=int(c["size"]), augment=(split == "train"), seed=int(seed), views=c["views"])
+        return ImageFrames(export_dir, split, size=int(c["size"]), augment=(split in TRAINING_SPLITS), seed=int(seed), views=c["views"])
 
     def losses(self, module: nn.Module, batch: dict[str, Any], phase: str) -> dict[str, torch.Tensor]:
         if phase != "estimator":
