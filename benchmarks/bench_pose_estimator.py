@@ -116,6 +116,22 @@ def _speed_512(export: Path, work: Path, config: dict, device: str, steps: int =
     return {"train_images_per_s": summary.get("windows_per_s"), "inference_images_per_s": _inference_speed(run, export, device, 512)}
 
 
+def _prior_from(run: Path, export: Path) -> Path:
+    """A finished reaction-prior run to reuse, refused unless it trained on the same train sequences as
+    ``export``'s (the motion is the same whether or not an export carries renders)."""
+    from dualhuman_builder.export.files import read_manifest
+    from dualhuman_builder.models.data import split_ids
+
+    cfg = json.loads((run / "config.json").read_text()) if (run / "config.json").is_file() else {}
+    if cfg.get("model") != "reaction-prior" or not (run / "summary.json").is_file():
+        sys.exit(f"--prior-from: {run} is not a finished reaction-prior run")
+    theirs = Path(cfg["export"]["path"])
+    split = cfg["export"].get("split", "train")
+    if split_ids(theirs, read_manifest(theirs), split) != split_ids(export, read_manifest(export), "train"):
+        sys.exit(f"--prior-from: {run} trained on {theirs}'s {split} split, not on {export}'s train split")
+    return run
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--export", type=Path, help="a rendered export (`dualhuman synth ... --path ground-truth --render`)")
@@ -129,6 +145,9 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--set", action="append", default=[], metavar="MODEL.KEY=JSON",
                     help="config override of one model (estimator, temporal, prior, lifting), e.g. estimator.size=128")
+    ap.add_argument("--prior-from", type=Path, default=None, metavar="DIR",
+                    help="use the reaction-prior runs DIR/full-s<seed> (e.g. bench_reaction_prior.py's --work) instead of "
+                         "training them; their export must have this export's train split")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--quick", action="store_true", help="a tiny rendered export, tiny models, a few steps, one seed")
     ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
@@ -179,6 +198,9 @@ def main() -> None:
                   "lifting": ("lifting-baseline", configs["lifting"])}  # fmt: skip
         wanted = needed | ({"temporal"} if any(PIPELINES[p][1] for p in pipelines) else set()) \
             | ({"prior"} if any(PIPELINES[p][2] for p in pipelines) else set())  # fmt: skip
+        if "prior" in wanted and args.prior_from is not None:
+            runs["prior"] = _prior_from(args.prior_from / f"full-s{seed}", export)
+            wanted = wanted - {"prior"}
         for key in [k for k in models if k in wanted]:
             name, cfg = models[key]
             runs[key] = work / f"{key}-s{seed}"
@@ -241,6 +263,8 @@ def main() -> None:
                     ["pipeline", "MPJPE", "PA-MPJPE", "translation", "MPJPE std", "PA-MPJPE std", "translation std"], rows)]
     notes = ("--quick: a tiny rendered export and tiny models; the figures check the script, they measure nothing."
              if args.quick else "")  # fmt: skip
+    if args.prior_from is not None:
+        figures["prior_runs"] = {f"s{seed}": str(args.prior_from / f"full-s{seed}") for seed in range(args.seeds)}
     path = write_results("pose_estimator", figures, params={**vars(args), "configs": configs}, goals=goals, tables=tables,
                          notes=notes, out=args.out)  # fmt: skip
     print(path)
