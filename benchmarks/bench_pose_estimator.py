@@ -117,8 +117,9 @@ def _speed_512(export: Path, work: Path, config: dict, device: str, steps: int =
 
 
 def _prior_from(run: Path, export: Path) -> Path:
-    """A finished reaction-prior run to reuse, refused unless it trained on the same train sequences as
-    ``export``'s (the motion is the same whether or not an export carries renders)."""
+    """A finished reaction-prior run to reuse, refused unless every sequence it trained on is in
+    ``export``'s train split (its ``train`` or ``fit`` split of an export of the same sequences: the
+    motion is the same whether or not an export carries renders), so it never saw a test sequence."""
     from dualhuman_builder.export.files import read_manifest
     from dualhuman_builder.models.data import split_ids
 
@@ -127,8 +128,16 @@ def _prior_from(run: Path, export: Path) -> Path:
         sys.exit(f"--prior-from: {run} is not a finished reaction-prior run")
     theirs = Path(cfg["export"]["path"])
     split = cfg["export"].get("split", "train")
-    if split_ids(theirs, read_manifest(theirs), split) != split_ids(export, read_manifest(export), "train"):
-        sys.exit(f"--prior-from: {run} trained on {theirs}'s {split} split, not on {export}'s train split")
+    ours, mine = read_manifest(export), read_manifest(theirs)
+    train_ids = set(split_ids(export, ours, "train"))
+
+    def motion(m: dict, sid: str):
+        return m.get("files", {}).get(f"sequences/{sid}/motion.npz", {}).get("sha256")
+
+    extra = [sid for sid in split_ids(theirs, mine, split) if sid not in train_ids or motion(mine, sid) != motion(ours, sid)]
+    if extra:
+        sys.exit(f"--prior-from: {run} trained on {len(extra)} sequences that are not in {export}'s train split "
+                 f"with the same motion (e.g. {min(extra)})")
     return run
 
 
@@ -142,6 +151,9 @@ def main() -> None:
     ap.add_argument("--camera", default=None, help="the view to estimate from (default: each sequence's first)")
     ap.add_argument("--prior-window", type=int, default=64)
     ap.add_argument("--prior-iterations", type=int, default=None)
+    ap.add_argument("--prior-lambda", type=float, default=None,
+                    help="the prior term's weight (default: the prior run's lambda_prior), e.g. the one "
+                         "bench_reaction_prior.py --choose-lambda chose for the full model")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--set", action="append", default=[], metavar="MODEL.KEY=JSON",
                     help="config override of one model (estimator, temporal, prior, lifting), e.g. estimator.size=128")
@@ -217,7 +229,8 @@ def main() -> None:
             t = time.perf_counter()
             s = estimate_export(runs[est], export, out, temporal_run=runs["temporal"] if use_t else None,
                                 prior_run=runs["prior"] if use_p else None, camera=args.camera, device=args.device,
-                                prior_window=args.prior_window, prior_iterations=args.prior_iterations, progress=False)  # fmt: skip
+                                prior_window=args.prior_window, prior_iterations=args.prior_iterations,
+                                prior_lambda=args.prior_lambda, progress=False)  # fmt: skip
             problems = verify_export(out)
             figures["verify_problems"] += len(problems)
             errs = _test_errors(s, test_ids)

@@ -24,11 +24,15 @@ from dualhuman_builder.cli.app import console, main
               help="Frames per window of the reaction prior's optimisation.")
 @click.option("--prior-iterations", type=click.IntRange(min=1), default=None,
               help="Optimiser steps per window of the reaction prior (default: the prior run's).")
+@click.option("--prior-lambda", type=click.FloatRange(min=0.0), default=None,
+              help="Weight of the prior term (default: the prior run's lambda_prior). Choose it on a validation split: "
+                   "see docs/guides/models.md.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the models.")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="One line per sequence.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary (errors of every stage) as JSON.")
 def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: Path | None, camera: str | None,
-             prior_window: int, prior_iterations: int | None, device: str, progress: bool, as_json: bool):  # fmt: skip
+             prior_window: int, prior_iterations: int | None, prior_lambda: float | None, device: str, progress: bool,
+             as_json: bool):  # fmt: skip
     """Estimate both people of every rendered sequence of DATASET with the pose estimator of RUN.
 
     Every rendered frame of one camera goes through the estimator, the people are linked over frames
@@ -55,7 +59,7 @@ def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: 
         console.print(escape(text), highlight=False, soft_wrap=True)
 
     summary = estimate_export(run, dataset, out, temporal_run=temporal, prior_run=prior, camera=camera, device=device,
-                              prior_window=prior_window, prior_iterations=prior_iterations, progress=progress and not as_json,
+                              prior_window=prior_window, prior_iterations=prior_iterations, prior_lambda=prior_lambda, progress=progress and not as_json,
                               say=say)  # fmt: skip
     if as_json:
         click.echo(json.dumps({k: v for k, v in summary.items() if k != "per_sequence"}, indent=2))

@@ -39,6 +39,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -154,7 +155,7 @@ def _estimate_view(ds, rows: np.ndarray, predict, keys: tuple[str, ...], module,
 def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_dir: str | Path, *,
                     temporal_run: str | Path | None = None, prior_run: str | Path | None = None,
                     camera: str | None = None, device: str = "cpu", prior_window: int = 64,
-                    prior_iterations: int | None = None, progress: bool = True,
+                    prior_iterations: int | None = None, prior_lambda: float | None = None, progress: bool = True,
                     say: Callable[[str], None] | None = None) -> dict[str, Any]:  # fmt: skip
     """Estimate both people of every rendered sequence of ``dataset_export`` with the estimator of the run
     ``estimator_run`` (then ``temporal_run``'s refinement and ``prior_run``'s test-time optimisation, when
@@ -162,7 +163,8 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
 
     ``camera``: the view to estimate from (default: each sequence's first rendered view). ``device``:
     ``cpu`` or ``cuda``. ``prior_window``, ``prior_iterations``: the reaction prior's windows (frames) and
-    optimiser steps per window (default: the run's ``refine_iterations``). ``progress``: one line per
+    optimiser steps per window (default: the run's ``refine_iterations``). ``prior_lambda``: the prior
+    term's weight (default: the run's ``lambda_prior``; choose it on a validation split). ``progress``: one line per
     sequence to ``say`` (default print). DualhumanError for a run that is not an estimator (or not a
     temporal refiner / reaction prior where those are asked), an export without renders, an unknown
     camera, or ``out_dir`` equal to the input.
@@ -201,6 +203,9 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
             raise DualhumanError(f"this prior run (without the motion VAE) codes windows of {prior.config['window']} frames",
                                  fix=f"use a prior window of {prior.config['window']}")  # fmt: skip
     p_iters = int(prior.config["refine_iterations"] if prior is not None and prior_iterations is None else prior_iterations or 0)
+    p_lambda = float(prior.config["lambda_prior"] if prior is not None and prior_lambda is None else prior_lambda or 0.0)
+    if prior_lambda is not None and not (math.isfinite(prior_lambda) and prior_lambda >= 0):
+        raise DualhumanError(f"the prior's weight must be a finite number >= 0, got {prior_lambda!r}", fix="use e.g. --prior-lambda 1")
     size = int(config.get("size", 64))
     ds = ImageFrames(src, "all", size=size, augment=False, views=[camera] if camera else None, cache_mb=0)
     manifest = read_manifest(src)
@@ -213,7 +218,8 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
         "camera": camera or "each sequence's first rendered view",
         "temporal": None if temporal_run is None else str(Path(temporal_run)),
         "prior": None if prior_run is None else {"run": str(Path(prior_run)), "window": int(prior_window),
-                                                   "iterations": p_iters, "refined": "the reactor, given the estimated actor"},
+                                                   "iterations": p_iters, "lambda_prior": p_lambda,
+                                                   "refined": "the reactor, given the estimated actor"},
         "stages": stages,
         "linking": "track input from the previous frame's estimated roots, then the two people assigned to the previous "
                    "frame's by the smaller total root distance",
@@ -268,7 +274,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
             from dualhuman_builder.models.reaction_prior.refine import refine_sequence
 
             r = 0 if actor_is_b(text) else 1
-            refined, nw = refine_sequence(prior, joints[:, 1 - r], joints[:, r], int(prior_window), float(prior.config["lambda_prior"]),
+            refined, nw = refine_sequence(prior, joints[:, 1 - r], joints[:, r], int(prior_window), p_lambda,
                                           p_iters, float(prior.config["refine_lr"]), dev)  # fmt: skip
             joints = joints.copy()
             joints[:, r] = refined

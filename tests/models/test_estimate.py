@@ -142,3 +142,14 @@ def test_wrong_runs_and_cameras_are_clear_errors(export, runs, tmp_path):
         estimate_export(runs["oracle"], export, tmp_path / "c", camera="nope", progress=False)
     with pytest.raises(DualhumanError, match="into itself"):
         estimate_export(runs["oracle"], export, export, progress=False)
+
+
+def test_the_prior_weight_is_the_callers_when_given_and_recorded(export, runs, tmp_path):
+    kw = {"prior_run": runs["prior"], "prior_window": 8, "prior_iterations": 3, "progress": False}
+    light = estimate_export(runs["oracle"], export, tmp_path / "light", prior_lambda=0.0, **kw)
+    heavy = estimate_export(runs["oracle"], export, tmp_path / "heavy", prior_lambda=1e3, **kw)
+    assert read_manifest(tmp_path / "light")["estimation"]["prior"]["lambda_prior"] == 0.0
+    assert read_manifest(tmp_path / "heavy")["estimation"]["prior"]["lambda_prior"] == 1e3
+    assert light["errors"]["prior"]["mpjpe_mm"] != heavy["errors"]["prior"]["mpjpe_mm"]  # the weight reaches the optimiser
+    with pytest.raises(DualhumanError, match="finite number >= 0"):
+        estimate_export(runs["oracle"], export, tmp_path / "bad", prior_lambda=-1.0, **kw)
