@@ -43,7 +43,9 @@ from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE, kl_
 NAME = "reaction-prior"
 
 #: Defaults sized for a CPU. The paper / MLD setting for a GPU: latent_dim 256, layers 9, ff 1024,
-#: vae_steps and inn_steps for 4000 and 500 epochs of the data (paper §3.5).
+#: vae_steps and inn_steps for 4000 and 500 epochs of the data (paper §3.5). The generator's 5000 steps
+#: of 32 windows are about the paper's 500 epochs for a few hundred sequences: with 500 steps its prior
+#: loss was still falling, and every variant refined worse (benchmarks/bench_reaction_prior.py).
 DEFAULTS: dict[str, Any] = {
     "window": 64,
     "latent_dim": 64,
@@ -64,7 +66,7 @@ DEFAULTS: dict[str, Any] = {
     "noise": NoiseModel().as_dict(),
     "stats_batches": 16,
     "vae_steps": 2000,
-    "inn_steps": 500,
+    "inn_steps": 5000,
     "lr": 1e-4,
     "weight_decay": 5e-4,
     "lambda_prior": 0.01,
