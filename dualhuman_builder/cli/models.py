@@ -56,7 +56,7 @@ def train(model: str, dataset: Path, out: Path, steps_scale: float, batch_size: 
       dualhuman train reaction-prior OUT --out runs/prior
       dualhuman train reaction-prior OUT --out runs/quick --steps-scale 0.05
       dualhuman train reaction-prior OUT --out runs/gpu --device cuda
-      dualhuman train reaction-prior OUT --out runs/fit --split fit   # then: evaluate ... --split validation
+      dualhuman train reaction-prior OUT --out runs/fit --split fit
     """
     from dualhuman_builder.models.training import parse_set
     from dualhuman_builder.models.training import train as run_training
