@@ -135,7 +135,8 @@ def evaluate(run: Path, dataset: Path, split: str, batch_size: int, device: str,
 @click.option("--window", type=click.IntRange(min=2), default=64, show_default=True,
               help="Frames per optimised window; windows overlap by half and are blended.")
 @click.option("--lambda-prior", type=click.FloatRange(min=0.0), default=0.01, show_default=True,
-              help="Weight of the prior term (the paper's 0.01).")
+              help="Weight of the prior term (the paper's 0.01). Its scale depends on the data: choose it on the "
+                   "validation split (train --split fit; docs/guides/models.md).")
 @click.option("--iterations", type=click.IntRange(min=1), default=100, show_default=True,
               help="Optimiser steps per window.")
 @click.option("--noisy-from", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
