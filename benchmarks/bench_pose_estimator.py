@@ -159,7 +159,7 @@ def main() -> None:
                     help="config override of one model (estimator, temporal, prior, lifting), e.g. estimator.size=128")
     ap.add_argument("--prior-from", type=Path, default=None, metavar="DIR",
                     help="use the reaction-prior runs DIR/full-s<seed> (e.g. bench_reaction_prior.py's --work) instead of "
-                         "training them; their export must have this export's train split")
+                         "training them; refused unless they trained only on this export's train sequences, same motion")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--quick", action="store_true", help="a tiny rendered export, tiny models, a few steps, one seed")
     ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")

@@ -68,14 +68,14 @@ def _test_sequences(export: Path, split: str) -> list[tuple[str, np.ndarray, np.
     return out
 
 
-def _dataset(export: Path) -> dict:
-    """What the figures were measured on: the split's sizes and, for an export of `dualhuman synth`, the
+def _dataset(export: Path, splits: tuple[str, ...] = ("train", "test")) -> dict:
+    """What the figures were measured on: the splits' sizes and, for an export of `dualhuman synth`, the
     plan's arguments that shape the data (types, hold-outs, frame rate, seed) and the takes it lost."""
     from dualhuman_builder.export.files import read_manifest
     from dualhuman_builder.models.data import split_ids
 
     manifest = read_manifest(export)
-    out = {split: len(split_ids(export, manifest, split)) for split in ("train", "test")}
+    out = {split: len(split_ids(export, manifest, split)) for split in splits}
     synth = manifest.get("synth")
     if isinstance(synth, dict):
         a = synth.get("arguments", {})
@@ -308,9 +308,7 @@ def main() -> None:
                             for n in variants if n != "full"}  # fmt: skip
     figures["seconds"] = time.perf_counter() - t0
     figures["test_sequences"] = len(seqs)
-    if lambdas:
-        figures["validation_sequences"] = len(_test_sequences(export, "validation"))
-    figures["dataset"] = _dataset(export)
+    figures["dataset"] = _dataset(export, ("train", "test", "fit", "validation") if lambdas else ("train", "test"))
     goals = [Goal("variants.full.refine.mpjpe_reduction.mean", ">=", 0.25, "", "refinement's MPJPE cut, full model")]
     goals += [Goal(f"beats.{n}", ">=", 1, "", f"full model refines better than {n}") for n in variants if n != "full"]
     goals.append(Goal("refine_export.verify_problems", "<=", 0, "", "refined export passes `export verify`"))

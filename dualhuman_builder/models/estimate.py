@@ -203,9 +203,9 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
             raise DualhumanError(f"this prior run (without the motion VAE) codes windows of {prior.config['window']} frames",
                                  fix=f"use a prior window of {prior.config['window']}")  # fmt: skip
     p_iters = int(prior.config["refine_iterations"] if prior is not None and prior_iterations is None else prior_iterations or 0)
-    p_lambda = float(prior.config["lambda_prior"] if prior is not None and prior_lambda is None else prior_lambda or 0.0)
     if prior_lambda is not None and not (math.isfinite(prior_lambda) and prior_lambda >= 0):
         raise DualhumanError(f"the prior's weight must be a finite number >= 0, got {prior_lambda!r}", fix="use e.g. --prior-lambda 1")
+    p_lambda = float(prior.config["lambda_prior"] if prior is not None and prior_lambda is None else prior_lambda or 0.0)
     size = int(config.get("size", 64))
     ds = ImageFrames(src, "all", size=size, augment=False, views=[camera] if camera else None, cache_mb=0)
     manifest = read_manifest(src)

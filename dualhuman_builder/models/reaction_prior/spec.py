@@ -44,8 +44,7 @@ NAME = "reaction-prior"
 
 #: Defaults sized for a CPU. The paper / MLD setting for a GPU: latent_dim 256, layers 9, ff 1024,
 #: vae_steps and inn_steps for 4000 and 500 epochs of the data (paper §3.5). The generator's 5000 steps
-#: of 32 windows are about the paper's 500 epochs for a few hundred sequences: with 500 steps its prior
-#: loss was still falling, and every variant refined worse (benchmarks/bench_reaction_prior.py).
+#: of 32 windows are about the paper's 500 epochs for a few hundred sequences.
 DEFAULTS: dict[str, Any] = {
     "window": 64,
     "latent_dim": 64,
