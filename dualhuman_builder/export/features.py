@@ -311,9 +311,10 @@ def humanml3d_rotations(canonical, psi) -> np.ndarray:
         raise ValueError(f"joint {JOINT22_NAMES[b + 1]} coincides with its parent at frame {t}")
     glob = _swing(REST_DIRECTIONS[1:], bone / length, _FLIP_AXIS[1:])  # (T, 21, 3, 3), joint j at j - 1
     out = np.empty_like(glob)
+    facing = rot_y(psi)
     for k in range(1, NUM_JOINTS):
         if k in CHAIN_FIRST:
-            out[:, k - 1] = rot_y(psi) @ glob[:, k - 1]
+            out[:, k - 1] = facing @ glob[:, k - 1]
         else:
             out[:, k - 1] = np.swapaxes(glob[:, _PARENTS[k] - 1], -1, -2) @ glob[:, k - 1]
     return out

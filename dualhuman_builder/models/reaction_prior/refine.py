@@ -8,7 +8,8 @@ steps are about ``lr`` whatever the gradient, so a constant one keeps circling t
     || D(mu_r) - x^_r ||^2  +  lambda_prior * KL[ N(mu_r, sigma_r) || G(E(x^_a)) ]
 
 where the data term is the sum of squared differences over the window in the model's normalised
-units (each joint coordinate scaled by its training deviation, as the paper's features are), ``D``
+units (each number of its representation, joint coordinates or the paper's features, scaled by its
+training deviation), ``D``
 decodes the mean (a deterministic decode; sigma enters through the KL), ``G(E(x^_a))`` is the prior the
 generator gives from the actor's encoding, and the KL is summed over the code's dimensions (nats);
 ``lambda_prior = 0.01`` as in the paper. The result is ``D(mu_r)`` back in the world frame.
@@ -36,7 +37,7 @@ import torch
 
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.models.reaction_prior.noise import corrupt
-from dualhuman_builder.models.reaction_prior.representation import canonical_pair, flat, to_world
+from dualhuman_builder.models.reaction_prior.representation import canonical_pair, to_world
 from dualhuman_builder.models.reaction_prior.noise import noise_model
 from dualhuman_builder.models.reaction_prior.vae import kl_gauss
 
@@ -80,9 +81,9 @@ def refine_windows(module, actor: torch.Tensor, noisy: torch.Tensor, lambda_prio
             opt = torch.optim.Adam([mu, ls], lr=lr)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, int(iterations), eta_min=lr * 0.01)
             with torch.enable_grad():
-                target = module.norm(flat(cr))
+                target = module.norm(module.rows(cr))
                 for _ in range(int(iterations)):
-                    data = (module.codec.decode(mu, cr.shape[1]) - target).square().sum(dim=(1, 2))
+                    data = (module.decode_rows(mu, cr.shape[1]) - target).square().sum(dim=(1, 2))
                     prior = kl_gauss(mu, ls, pm, pl).sum(-1)
                     loss = (data + lambda_prior * prior).sum()
                     opt.zero_grad(set_to_none=True)

@@ -9,6 +9,11 @@ visibility-driven noise of :mod:`.noise` and the target is the clean reactor's e
 generator is also trained in reverse, ``KL[q(z_a | x_a) || G^-1(q(z_r | x~_r))]`` (weight
 ``reverse_weight``), since swapping action and reaction keeps the interaction's meaning.
 
+Representation (config ``representation``, :mod:`.representation`): ``"joints"`` (default), the 22
+joints in the actor's window frame, or ``"features"``, the paper's 269-dim features of each person
+in that frame; the VAE's reconstruction loss and the refinement's data term are taken in the
+chosen representation's normalised units, and every figure on the joints they give back.
+
 Ablations (the paper's Table 4 rows), all config switches:
 
 - ``use_vae = false``: no motion VAE. The code of a window is fixed, not learned: the first
@@ -37,7 +42,8 @@ from torch import nn
 from dualhuman_builder.models.base import Phase
 from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt, noise_model
-from dualhuman_builder.models.reaction_prior.representation import FEATS, Normalizer, canonical_pair, flat, unflat
+from dualhuman_builder.models.reaction_prior.representation import (REPRESENTATIONS, Normalizer, canonical_pair, flat,
+                                                                    recover_window, rows, unflat, window_features)  # fmt: skip
 from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE, kl_gauss
 
 NAME = "reaction-prior"
@@ -47,6 +53,8 @@ NAME = "reaction-prior"
 #: of 32 windows are about the paper's 500 epochs for a few hundred sequences.
 DEFAULTS: dict[str, Any] = {
     "window": 64,
+    "representation": "joints",
+    "features_fps": 20.0,
     "latent_dim": 64,
     "layers": 2,
     "heads": 4,
@@ -77,24 +85,33 @@ DEFAULTS: dict[str, Any] = {
     "vae_from": None,
 }
 #: Config keys that shape the motion VAE and its normalisation: a run given as ``vae_from`` must share them.
-VAE_KEYS = ("window", "latent_dim", "layers", "heads", "ff", "dropout", "stats_batches")
+VAE_KEYS = ("window", "representation", "features_fps", "latent_dim", "layers", "heads", "ff", "dropout", "stats_batches")
 
 class ReactionPrior(nn.Module):
     """Normaliser + motion code (VAE or, ablated, DCT) + generator (INN or, ablated, MLP).
 
     All tensors in normalised units unless named otherwise; windows ``(B, L, 22, 3)`` metres in the
-    actor's window frame (:mod:`.representation`)."""
+    actor's window frame (:mod:`.representation`). The codec sees rows of the configured
+    ``representation``: ``L`` rows of joints, or ``L - 1`` rows of the 269-dim features (computed at
+    ``features_fps``, the export's frame rate)."""
 
     def __init__(self, config: dict[str, Any]):
         super().__init__()
         c = self.config = {**DEFAULTS, **config}  # losses and evaluate read loss weights and noise from it
         self.window = int(c["window"])
-        self.norm = Normalizer(FEATS, int(c["stats_batches"]))
+        self.representation = str(c["representation"])
+        if self.representation not in REPRESENTATIONS:
+            raise ValueError(f"representation must be one of {', '.join(REPRESENTATIONS)}, got {self.representation!r}")
+        self.fps = float(c["features_fps"])
+        if not self.fps > 0:
+            raise ValueError(f"features_fps must be a positive frame rate, got {c['features_fps']!r}")
+        feats = REPRESENTATIONS[self.representation]
+        self.norm = Normalizer(feats, int(c["stats_batches"]))
         if c["use_vae"]:
-            self.codec: nn.Module = MotionVAE(FEATS, c["latent_dim"], c["layers"], c["heads"], c["ff"], c["dropout"],
+            self.codec: nn.Module = MotionVAE(feats, c["latent_dim"], c["layers"], c["heads"], c["ff"], c["dropout"],
                                               max_len=max(512, self.window))  # fmt: skip
         else:
-            self.codec = DCTCodec(FEATS, self.window, c["dct_coeffs"], c["dct_log_std"])
+            self.codec = DCTCodec(feats, rows(self.representation, self.window), c["dct_coeffs"], c["dct_log_std"])
         dim = 2 * self.codec.latent_dim
         if c["mapper"] == "inn":
             self.mapper: nn.Module = CouplingINN(dim, c["mapper_blocks"], c["mapper_hidden"], c["mapper_clamp"])
@@ -134,14 +151,23 @@ class ReactionPrior(nn.Module):
     def latent_dim(self) -> int:
         return self.codec.latent_dim
 
+    def rows(self, joints: torch.Tensor) -> torch.Tensor:
+        """Canonical joints ``(B, L, 22, 3)`` metres -> the representation's rows ``(B, R, F)``, not normalised."""
+        return window_features(joints, self.fps) if self.representation == "features" else flat(joints)
+
+    def decode_rows(self, z: torch.Tensor, length: int) -> torch.Tensor:
+        """Code ``(B, D)`` -> normalised rows ``(B, R, F)`` of a window of ``length`` frames."""
+        return self.codec.decode(z, rows(self.representation, length))
+
     def encode(self, joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Canonical joints ``(B, L, 22, 3)`` metres -> ``(mu, log sigma)`` each ``(B, D)``."""
-        mu, logvar = self.codec.encode(self.norm(flat(joints)))
+        mu, logvar = self.codec.encode(self.norm(self.rows(joints)))
         return mu, 0.5 * logvar
 
     def decode(self, z: torch.Tensor, length: int | None = None) -> torch.Tensor:
         """Code ``(B, D)`` -> canonical joints ``(B, L, 22, 3)`` metres."""
-        return unflat(self.norm.inverse(self.codec.decode(z, length or self.window)))
+        x = self.norm.inverse(self.decode_rows(z, length or self.window))
+        return recover_window(x) if self.representation == "features" else unflat(x)
 
     def react(self, mu_a: torch.Tensor, logstd_a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The prior on the reactor's code given the actor's: ``(mu~_r, log sigma~_r)``."""
@@ -186,11 +212,13 @@ class ReactionPriorSpec:
 
     def losses(self, module: nn.Module, batch: dict[str, Any], phase: str) -> dict[str, torch.Tensor]:
         ca, cr, _, _ = _pair(batch)
-        both = torch.cat([ca, cr], dim=0)
-        if module.training:
-            module.norm.observe(flat(both))
+        stats = module.training and int(module.norm.ready) < module.norm.batches
+        if stats or phase == "vae":
+            both = module.rows(torch.cat([ca, cr], dim=0))
+            if stats:
+                module.norm.observe(both)
         if phase == "vae":
-            x = module.norm(flat(both))
+            x = module.norm(both)
             mu, logvar = module.codec.encode(x)
             z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
             x_hat = module.codec.decode(z, x.shape[1])
