@@ -43,14 +43,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from dualhuman_builder.export.features import (
-    FEATURE_DIM,
-    NUM_JOINTS,
-    FeatureLayout,
-    motion_features,
-)
+from dualhuman_builder.export.features import FEATURE_DIM, NUM_JOINTS
 from dualhuman_builder.models.base import Phase, register
 from dualhuman_builder.models.data import InteractionWindows
+from dualhuman_builder.models.motion_torch import recover_joints_torch, window_features
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
 from dualhuman_builder.models.reaction_prior.representation import Normalizer
 from dualhuman_builder.models.reaction_prior.noise import noise_model
@@ -82,43 +78,6 @@ REPRESENTATIONS = ("features", "joints")
 
 
 # ----------------------------------------------------------------------------------- representation
-def rotate_y(v: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Rotate ``v (..., 3)`` by ``angle`` (broadcast against ``v[..., 0]``) radians about +Y (+Z goes to
-    ``(sin, 0, cos)``), as the export's features do."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    return torch.stack([c * x + s * z, y, -s * x + c * z], dim=-1)
-
-
-def recover_joints_torch(features: torch.Tensor) -> torch.Tensor:
-    """World joints ``(B, N + 1, 22, 3)`` of features ``(B, N, 269)``: the batched, differentiable
-    :func:`~dualhuman_builder.export.features.recover_joints` (same integration of the facing and the
-    root velocity, same last frame, same world transform from row 0's dims [263:269])."""
-    f = features
-    B, n = f.shape[:2]
-    psi = torch.cat([f.new_zeros(B, 1), -2.0 * torch.cumsum(f[..., 0], dim=1)], dim=1)  # (B, N+1)
-    vel = torch.stack([f[..., 1], torch.zeros_like(f[..., 1]), f[..., 2]], dim=-1)
-    root_xz = torch.cat([f.new_zeros(B, 1, 3), torch.cumsum(rotate_y(vel, psi[:, 1:]), dim=1)], dim=1)
-    flat = root_xz[:, :n] * root_xz.new_tensor([1.0, 0.0, 1.0])
-    ric = f[..., FeatureLayout.RIC].reshape(B, n, NUM_JOINTS - 1, 3)
-    rest = rotate_y(ric, psi[:, :n, None]) + flat[:, :, None]
-    root = torch.stack([flat[..., 0], f[..., 3], flat[..., 2]], dim=-1)
-    frames = torch.cat([root[:, :, None], rest], dim=2)  # (B, N, 22, 3)
-    step = f[:, -1, FeatureLayout.JOINT_VELOCITIES].reshape(B, NUM_JOINTS, 3)
-    last = frames[:, -1] + rotate_y(step, psi[:, n - 1, None])
-    out = torch.cat([frames, last[:, None]], dim=1)
-    yaw0 = torch.atan2(f[:, 0, 263], f[:, 0, 264])
-    return rotate_y(out, yaw0[:, None, None]) + f[:, 0, None, None, 265:268]
-
-
-def window_features(joints: torch.Tensor, fps: float) -> torch.Tensor:
-    """Features ``(B, L - 1, 269)`` of windows ``joints (B, L, 22, 3)`` world metres (each window its own
-    canonical frame, computed in numpy by the export's own code; not differentiable)."""
-    arr = joints.detach().to("cpu", torch.float64).numpy()
-    out = np.stack([motion_features(w, float(fps)) for w in arr])
-    return torch.from_numpy(out).to(joints.device, torch.float32)
-
-
 def accel(joints: torch.Tensor) -> torch.Tensor:
     """Second differences ``(..., L - 2, J, 3)`` of ``joints (..., L, J, 3)`` along time (per frame squared)."""
     return joints[..., 2:, :, :] - 2.0 * joints[..., 1:-1, :, :] + joints[..., :-2, :, :]

@@ -14,9 +14,9 @@ from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt
 from dualhuman_builder.models.reaction_prior.refine import (blend_weights, refine_sequence, refine_sequences,
                                                             window_starts)  # fmt: skip
 from dualhuman_builder.export.features import recover_joints
-from dualhuman_builder.models.reaction_prior.representation import (canonical_pair, flat, recover_window, rotate_y,
-                                                                    to_canonical, to_world, window_features,
-                                                                    window_frame)  # fmt: skip
+from dualhuman_builder.models.motion_torch import recover_joints_torch, window_features
+from dualhuman_builder.models.reaction_prior.representation import (canonical_pair, flat, rotate_y, to_canonical,
+                                                                    to_world, window_frame)  # fmt: skip
 
 TINY = {"window": 16, "latent_dim": 16, "layers": 1, "heads": 2, "ff": 32, "dropout": 0.0, "mapper_blocks": 2,
         "mapper_hidden": 32, "vae_steps": 6, "inn_steps": 4, "stats_batches": 4, "eval_refine_windows": 2,
@@ -123,15 +123,15 @@ def test_feature_windows_invert_exactly_and_differentiably():
     window back (the reactor where it stands relative to the actor, not at the origin), and a loss on
     the recovered joints reaches every feature row."""
     a, b = _motion(3, 16, seed=2)
-    ca, cr, _, _ = canonical_pair(a.double(), b.double())
+    _, cr, _, _ = canonical_pair(a.double(), b.double())
     f = window_features(cr, 20.0)
     assert f.shape == (3, 15, 269)
-    back = recover_window(f.double())
+    back = recover_joints_torch(f.double(), world_from="mean")
     ref = np.stack([recover_joints(x) for x in f.numpy()])
     assert np.abs(back.numpy() - ref).max() < 1e-5
     assert (back - cr).abs().max() < 1e-5 and cr[:, :, 0].norm(dim=-1).min() > 1.0
     x = f.double().requires_grad_(True)
-    recover_window(x).square().sum().backward()
+    recover_joints_torch(x, world_from="mean").square().sum().backward()
     assert (x.grad[:, :, 4:67].abs().sum(-1) > 0).all()  # every row's ric positions reach the joints
 
 

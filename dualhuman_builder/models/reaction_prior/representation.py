@@ -16,8 +16,9 @@ Two representations of a person's window in that frame (config ``representation`
   :func:`dualhuman_builder.export.features.motion_features`, computed on the window **already in the
   actor's window frame**, so a window of ``L`` frames gives ``L - 1`` rows and the reactor's dims
   [263:269] (its own initial facing and floor point) carry its placement relative to the actor,
-  which per-person canonical features would otherwise remove. :func:`recover_window` is the
-  differentiable inverse (a torch port of ``recover_joints``), which gives the ``L`` frames back.
+  which per-person canonical features would otherwise remove.
+  :func:`~dualhuman_builder.models.motion_torch.recover_joints_torch` is the differentiable inverse,
+  which gives the ``L`` frames back.
 
 Either is normalised per number by a mean and standard deviation computed from the training windows
 (:class:`Normalizer`, kept as module buffers so that they travel with every checkpoint).
@@ -25,11 +26,10 @@ Either is normalised per number by a mean and standard deviation computed from t
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
-from dualhuman_builder.export.features import FEATURE_DIM, FeatureLayout, motion_features
+from dualhuman_builder.export.features import FEATURE_DIM
 
 NUM_JOINTS = 22
 FEATS = NUM_JOINTS * 3
@@ -134,44 +134,3 @@ def rows(representation: str, length: int) -> int:
     (a feature row describes a frame and the step after it)."""
     return int(length) - (representation == "features")
 
-
-def window_features(joints: torch.Tensor, fps: float) -> torch.Tensor:
-    """The 269-dim features ``(B, L-1, 269)`` of windows ``joints (B, L, 22, 3)`` (metres, the actor's
-    window frame) at ``fps``: :func:`~dualhuman_builder.export.features.motion_features` of each
-    window, so that they are exactly the export's definition (computed in numpy on the CPU, without
-    gradient: the features of data are inputs, never optimised)."""
-    arr = joints.detach().to("cpu", torch.float64).numpy()
-    out = np.stack([motion_features(w, fps) for w in arr])
-    return torch.from_numpy(out).to(joints.device, torch.float32)
-
-
-def recover_window(features: torch.Tensor) -> torch.Tensor:
-    """Joints ``(B, N+1, 22, 3)`` metres in the window frame from features ``(B, N, 269)``: the torch
-    port of :func:`~dualhuman_builder.export.features.recover_joints` (``world=True``), batched and
-    differentiable. The world transform (initial facing and floor point, dims [263:268]) is the mean
-    over the rows, which for data (constant rows) is row 0 as there, and for a decoded window uses
-    every row's estimate of it."""
-    f = features
-    B, n, _ = f.shape
-    psi = torch.cat([f.new_zeros(B, 1), -2.0 * torch.cumsum(f[:, :, 0], dim=1)], dim=1)  # (B, N+1)
-    zero = torch.zeros_like(f[:, :, 1])
-    vel = torch.stack([f[:, :, 1], zero, f[:, :, 2]], dim=-1)  # (B, N, 3)
-    root_xz = torch.cat([f.new_zeros(B, 1, 3), torch.cumsum(_rot_y(vel, psi[:, 1:]), dim=1)], dim=1)
-    ground = root_xz * root_xz.new_tensor([1.0, 0.0, 1.0])
-    ric = f[:, :, FeatureLayout.RIC].reshape(B, n, NUM_JOINTS - 1, 3)
-    body = _rot_y(ric, psi[:, :n, None]) + ground[:, :n, None]
-    root = ground[:, :n] + torch.stack([zero, f[:, :, 3], zero], dim=-1)
-    frames = torch.cat([root[:, :, None], body], dim=2)  # (B, N, 22, 3)
-    step = f[:, -1, FeatureLayout.JOINT_VELOCITIES].reshape(B, NUM_JOINTS, 3)
-    last = frames[:, -1] + _rot_y(step, psi[:, n - 1, None])
-    out = torch.cat([frames, last[:, None]], dim=1)
-    world = f[:, :, 263:268].mean(dim=1)
-    yaw0 = torch.atan2(world[:, 0], world[:, 1])
-    return rotate_y(out, yaw0) + world[:, None, None, 2:5]
-
-
-def _rot_y(v: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Rotate ``v (..., 3)`` about +Y by ``angle``, broadcast against ``v[..., 0]``."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    return torch.stack([c * x + s * z, y, -s * x + c * z], dim=-1)

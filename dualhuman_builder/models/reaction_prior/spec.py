@@ -42,8 +42,9 @@ from torch import nn
 from dualhuman_builder.models.base import Phase
 from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt, noise_model
+from dualhuman_builder.models.motion_torch import recover_joints_torch, window_features
 from dualhuman_builder.models.reaction_prior.representation import (REPRESENTATIONS, Normalizer, canonical_pair, flat,
-                                                                    recover_window, rows, unflat, window_features)  # fmt: skip
+                                                                    rows, unflat)  # fmt: skip
 from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE, kl_gauss
 
 NAME = "reaction-prior"
@@ -167,7 +168,7 @@ class ReactionPrior(nn.Module):
     def decode(self, z: torch.Tensor, length: int | None = None) -> torch.Tensor:
         """Code ``(B, D)`` -> canonical joints ``(B, L, 22, 3)`` metres."""
         x = self.norm.inverse(self.decode_rows(z, length or self.window))
-        return recover_window(x) if self.representation == "features" else unflat(x)
+        return recover_joints_torch(x, world_from="mean") if self.representation == "features" else unflat(x)
 
     def react(self, mu_a: torch.Tensor, logstd_a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The prior on the reactor's code given the actor's: ``(mu~_r, log sigma~_r)``."""
