@@ -210,6 +210,10 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     ds = ImageFrames(src, "all", size=size, augment=False, views=[camera] if camera else None, cache_mb=0)
     manifest = read_manifest(src)
     fps = float(manifest["fps"])
+    if prior is not None:
+        from dualhuman_builder.models.reaction_prior.spec import check_fps
+
+        check_fps(prior.config, fps, str(src))
     body = manifest.get("body_model", {})
     vocabulary = Vocabulary.from_dict(_read_json(src, manifest.get("vocabulary", {}).get("file", "labels.json")))
     stages = ["estimate", "fill"] + (["temporal"] if temporal is not None else []) + (["prior"] if prior is not None else [])

@@ -374,7 +374,8 @@ def test_refine_export_refuses_what_it_cannot_refine(tiny_run, tmp_path):
 
 def test_the_prior_on_the_papers_features_trains_reloads_and_refines_from_the_cli(tiny_run, tmp_path):
     """``--set representation=features``: the run's VAE codes 269-dim feature rows, reloads bit for
-    bit, refines an export that verifies, and cannot lend its VAE to a run on joints."""
+    bit, refines an export that verifies, cannot lend its VAE to a run on joints, and refuses an
+    export at another frame rate than its features'."""
     from click.testing import CliRunner
 
     from dualhuman_builder.cli import main
@@ -401,3 +402,6 @@ def test_the_prior_on_the_papers_features_trains_reloads_and_refines_from_the_cl
     with pytest.raises(DualhumanError, match="representation"):
         train("reaction-prior", export, tmp_path / "mlp", config_overrides={**TINY, "mapper": "mlp", "vae_from": str(run)},
               batch_size=4, seed=0, progress=False)  # fmt: skip
+    with pytest.raises(DualhumanError, match="at 20 fps, but this reaction prior's features are computed at 30 fps"):
+        train("reaction-prior", export, tmp_path / "fps", config_overrides={**TINY, "representation": "features",
+              "features_fps": 30.0}, batch_size=4, seed=0, progress=False)  # fmt: skip

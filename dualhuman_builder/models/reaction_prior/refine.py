@@ -210,6 +210,7 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
     from dualhuman_builder.models.derived import derived_item, write_derived_export
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
+    from dualhuman_builder.models.reaction_prior.spec import check_fps
     from dualhuman_builder.models.training import load_run
     from dualhuman_builder.models.visibility import joint_visibility
     from dualhuman_builder.tracks import BodyTrack, InteractionSequence
@@ -229,6 +230,7 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
         raise DualhumanError(f"this run (without the motion VAE) codes windows of {cfg['window']} frames, not {window}",
                              fix=f"use --window {cfg['window']}")  # fmt: skip
     manifest = read_manifest(src)
+    check_fps(cfg, float(manifest["fps"]), str(src))
     noisy_dir = Path(noisy_from) if noisy_from is not None else None
     noisy_manifest = read_manifest(noisy_dir) if noisy_dir is not None else None
     body = manifest.get("body_model", {})
