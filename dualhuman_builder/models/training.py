@@ -337,7 +337,7 @@ def train(spec_name_or_spec: str | ModelSpec, export_dir: str | Path, out_dir: s
         "phases": [{"name": p.name, "steps": p.steps, "lr": p.lr, "weight_decay": p.weight_decay} for p in phases],
         "export": {"path": str(export_dir.resolve()), "manifest_sha256": digest, "split": split},
     }
-    start = _open_run(run_dir, doc, resume)
+    start = _open_run(run_dir, doc, resume, spec.default_config())
     if start is not None and start >= sum(p.steps for p in phases) and (run_dir / runs.SUMMARY).is_file():
         with _Display(progress) as show:
             show.say(f"{run_dir} is complete already ({start} steps)")
@@ -447,8 +447,12 @@ def _info(phase: Phase, phase_step: int, global_step: int, t_run: float) -> dict
     return {"phase": phase.name, "phase_step": int(phase_step), "global_step": int(global_step), "time_s": t_run}
 
 
-def _open_run(run_dir: Path, doc: dict[str, Any], resume: bool) -> int | None:
-    """None for a fresh run folder; the checkpoint's global step when an existing run resumes."""
+def _open_run(run_dir: Path, doc: dict[str, Any], resume: bool, defaults: dict[str, Any]) -> int | None:
+    """None for a fresh run folder; the checkpoint's global step when an existing run resumes.
+
+    A setting the run's config lacks counts as the model's default (``defaults``), as loading the run
+    takes it: a setting added to a model since the run was made does not stop the run from resuming
+    unless it is now set to another value."""
     cfg_path = run_dir / runs.CONFIG
     if run_dir.exists() and not run_dir.is_dir():
         raise DualhumanError(f"{run_dir} is a file", fix="choose another --out")
@@ -457,7 +461,10 @@ def _open_run(run_dir: Path, doc: dict[str, Any], resume: bool) -> int | None:
         if not resume:
             raise DualhumanError(f"{run_dir} holds a run already", fix="choose another --out, or remove the folder to start over")
         keys = ("model", "config", "train", "phases")
-        diff = runs.differences({k: old.get(k) for k in keys}, {k: doc[k] for k in keys})
+        before = {k: old.get(k) for k in keys}
+        if isinstance(before["config"], dict):
+            before["config"] = {**{k: v for k, v in defaults.items() if k not in before["config"]}, **before["config"]}
+        diff = runs.differences(before, {k: doc[k] for k in keys})
         if old.get("export", {}).get("manifest_sha256") != doc["export"]["manifest_sha256"]:
             diff.append(f"export: manifest {str(old.get('export', {}).get('manifest_sha256'))[:12]} -> "
                         f"{doc['export']['manifest_sha256'][:12]} (another or a changed dataset)")  # fmt: skip

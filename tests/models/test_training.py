@@ -186,6 +186,23 @@ def test_a_changed_config_is_refused(full_run, export):
         train(TinySpec.name, export, run, seed=3, split="fit", **FAST)
 
 
+def test_a_setting_added_to_the_model_since_the_run_does_not_stop_it_resuming(full_run, export, tmp_path):
+    """A run made before its model had a setting resumes as long as the setting keeps its default
+    (the value loading the run takes); set to another value, it is refused by name."""
+    import shutil
+
+    run = tmp_path / "older"
+    shutil.copytree(full_run[0], run)
+    doc = json.loads((run / "config.json").read_text())
+    hidden = doc["config"].pop("hidden")  # as written before the model had the setting
+    (run / "config.json").write_text(json.dumps(doc))
+    metrics = (run / "metrics.jsonl").read_bytes()
+    train(TinySpec.name, export, run, seed=3, **FAST)  # complete: nothing to train, nothing refused
+    assert (run / "metrics.jsonl").read_bytes() == metrics
+    with pytest.raises(DualhumanError, match=rf"config\.hidden: {hidden} -> {hidden + 1}"):
+        train(TinySpec.name, export, run, seed=3, config_overrides={"hidden": hidden + 1}, **FAST)
+
+
 def test_a_run_on_the_fit_split_never_sees_the_validation_people(export, tmp_path):
     from dualhuman_builder.export.files import read_manifest
     from dualhuman_builder.models.data import split_ids
