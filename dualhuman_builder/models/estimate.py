@@ -7,7 +7,8 @@ written as an export of both people's tracks (`dualhuman estimate RUN DATASET --
 1. **Estimate**: every rendered frame of one camera (``camera``, or the sequence's first rendered view)
    goes through the trained estimator (``pose-estimator``: :func:`~.pose_estimator.predict`; the
    ``lifting-baseline`` works too, from the render's 2D keypoints), frame after frame, in
-   :class:`~.images.ImageFrames`' crop. The ground-truth targets of the frames are never given to it.
+   :class:`~.images.ImageFrames`' crop (the sequences in lockstep: frame k of every sequence in one
+   batch). The ground-truth targets of the frames are never given to it.
 2. **Link**: the previous frame's estimated roots are the track input (``prev_root``, normalised in the
    current crop); on top of it, each frame's two people are assigned to the previous frame's by the
    smaller total root distance, so an identity switch of the network does not swap the tracks.
@@ -118,38 +119,54 @@ def _errors(pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     return {k: float(v) for k, v in pose_errors(pred, truth).items()}
 
 
-def _estimate_view(ds, rows: np.ndarray, predict, keys: tuple[str, ...], module, truth_cam0: np.ndarray,
-                   device: torch.device) -> tuple[np.ndarray, np.ndarray, bool]:  # fmt: skip
-    """``(frames (R,), joints_cam (R, 2, 22, 3), first_swapped)``: the estimates of one camera's rendered
-    frames ``rows`` (items of ``ds`` in frame order), persons in the export's order (module docstring)."""
+#: Images the estimator sees at once: the sequences' frames go through it in lockstep, frame k of
+#: every sequence together, since a frame's track input is the same sequence's previous estimate.
+ESTIMATE_BATCH = 64
+
+
+def _estimate_views(ds, jobs: list[tuple[np.ndarray, np.ndarray]], predict, keys: tuple[str, ...], module,
+                    device: torch.device, batch_size: int = ESTIMATE_BATCH) -> list[tuple[np.ndarray, np.ndarray, bool]]:  # fmt: skip
+    """Per job ``(rows, truth_cam0)``, ``(frames (R,), joints_cam (R, 2, 22, 3), first_swapped)``: the
+    estimates of one camera's rendered frames ``rows`` (items of ``ds`` in frame order), persons in the
+    export's order (module docstring). The jobs' k-th frames are estimated together, in batches of
+    ``batch_size``; each item's result depends only on its own image and track input."""
     from dualhuman_builder.export.writer import normalised_root
 
     S = ds.size
-    frames, out = [], []
-    prev: np.ndarray | None = None
-    first_swapped = False
-    for i in rows:
-        b = ds.batch([int(i)])
-        K = b["K"][0].numpy().astype(np.float64)
-        inp = {k: b[k] for k in keys if k in b}
-        if "prev_root" in keys:
-            has = prev is not None
-            pr = normalised_root(prev[:, 0], K, S, S) if has else np.zeros((2, 3))
-            inp["prev_root"] = torch.from_numpy(pr.astype(np.float32))[None]
-            inp["has_prev"] = torch.tensor([has])
-        inp = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in inp.items()}
-        with torch.no_grad():
-            j = predict(module, inp)["joints_cam"][0].detach().float().cpu().numpy().astype(np.float64)
-        if prev is None:
-            first_swapped = _link(j[:, 0], truth_cam0[:, 0])
-            if first_swapped:
-                j = j[::-1].copy()
-        elif _link(j[:, 0], prev[:, 0]):
-            j = j[::-1].copy()
-        prev = j
-        frames.append(int(b["frame"][0]))
-        out.append(j)
-    return np.asarray(frames, np.int64), np.stack(out), first_swapped
+    prev: list[np.ndarray | None] = [None] * len(jobs)
+    swapped = [False] * len(jobs)
+    frames: list[list[int]] = [[] for _ in jobs]
+    outs: list[list[np.ndarray]] = [[] for _ in jobs]
+    for step in range(max((len(rows) for rows, _ in jobs), default=0)):
+        active = [i for i, (rows, _) in enumerate(jobs) if step < len(rows)]
+        for c0 in range(0, len(active), int(batch_size)):
+            part = active[c0 : c0 + int(batch_size)]
+            b = ds.batch([int(jobs[i][0][step]) for i in part])
+            inp = {k: b[k] for k in keys if k in b}
+            if "prev_root" in keys:
+                K = b["K"].numpy().astype(np.float64)
+                pr = np.zeros((len(part), 2, 3))
+                has = np.array([prev[i] is not None for i in part])
+                for q, i in enumerate(part):
+                    if prev[i] is not None:
+                        pr[q] = normalised_root(prev[i][:, 0], K[q], S, S)
+                inp["prev_root"] = torch.from_numpy(pr.astype(np.float32))
+                inp["has_prev"] = torch.from_numpy(has)
+            inp = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in inp.items()}
+            with torch.no_grad():
+                out = predict(module, inp)["joints_cam"].detach().float().cpu().numpy().astype(np.float64)
+            for q, i in enumerate(part):
+                j = out[q]
+                if prev[i] is None:
+                    swapped[i] = _link(j[:, 0], jobs[i][1][:, 0])
+                    if swapped[i]:
+                        j = j[::-1].copy()
+                elif _link(j[:, 0], prev[i][:, 0]):
+                    j = j[::-1].copy()
+                prev[i] = j
+                frames[i].append(int(b["frame"][q]))
+                outs[i].append(j)
+    return [(np.asarray(f, np.int64), np.stack(o), sw) for f, o, sw in zip(frames, outs, swapped)]
 
 
 def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_dir: str | Path, *,
@@ -240,24 +257,33 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     how["not_estimated"] = sorted(set(manifest.get("sequences", {})) - set(sids))  # no renders (of this camera)
     items, splits, per_seq = [], {}, {}
     totals: dict[str, list] = {}
-    for n, sid in enumerate(sids, 1):
+    def motion(sid: str) -> dict[str, np.ndarray]:
+        rel = f"sequences/{sid}/motion.npz"
+        with open_confined(src, rel, f"{rel} of {src}") as f:
+            return load_motion(f)
+
+    plan = []  # per sequence: rows of its view in frame order, camera name, R, t, the first frame's truth in it
+    for sid in sids:
         k = ds.ids.index(sid)
         rows = np.flatnonzero(ds.index[:, 0] == k)
         view = int(ds.index[rows, 1].min())
         rows = rows[ds.index[rows, 1] == view]
         rows = rows[np.argsort(ds.index[rows, 2], kind="stable")]
-        rel = f"sequences/{sid}/motion.npz"
-        with open_confined(src, rel, f"{rel} of {src}") as f:
-            m = load_motion(f)
+        first = ds.batch([int(rows[0])])
+        cam_name = first["camera"][0]
+        R, t = _camera(src, sid, cam_name)
+        m = motion(sid)
+        truth0 = np.stack([m["a.joints"], m["b.joints"]], axis=1)[int(first["frame"][0])].astype(np.float64)
+        plan.append((rows, cam_name, R, t, truth0 @ R.T + t))
+    if progress:
+        say(f"estimating {sum(len(p[0]) for p in plan)} rendered frames of {len(sids)} sequences")
+    views = _estimate_views(ds, [(p[0], p[4]) for p in plan], predict, keys, module, dev)
+    for n, (sid, (rows, cam_name, R, t, _), (frames, est_cam, swapped)) in enumerate(zip(sids, plan, views), 1):
+        m = motion(sid)
         text = _read_json(src, f"sequences/{sid}/text.json")
         seq_doc = _read_json(src, f"sequences/{sid}/sequence.json")
         truth = np.stack([m["a.joints"], m["b.joints"]], axis=1).astype(np.float64)  # (T, 2, 22, 3)
         T = len(truth)
-        first = ds.batch([int(rows[0])])
-        cam_name = first["camera"][0]
-        R, t = _camera(src, sid, cam_name)
-        truth_cam0 = truth[int(first["frame"][0])] @ R.T + t
-        frames, est_cam, swapped = _estimate_view(ds, rows, predict, keys, module, truth_cam0, dev)
         est_world = (est_cam - t) @ R  # R^T (X_c - t), row vectors
         if np.any(frames < 0) or np.any(frames >= T):
             raise DualhumanError(f"{src}/sequences/{sid}: rendered frames outside the motion's {T} frames",

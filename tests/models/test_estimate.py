@@ -153,3 +153,31 @@ def test_the_prior_weight_is_the_callers_when_given_and_recorded(export, runs, t
     assert light["errors"]["prior"]["mpjpe_mm"] != heavy["errors"]["prior"]["mpjpe_mm"]  # the weight reaches the optimiser
     with pytest.raises(DualhumanError, match="finite number >= 0"):
         estimate_export(runs["oracle"], export, tmp_path / "bad", prior_lambda=-1.0, **kw)
+
+
+def test_frames_estimated_together_are_the_frames_estimated_one_at_a_time(export, tmp_path):
+    """The sequences' frames go through the estimator in lockstep batches; with track inputs from each
+    sequence's own previous estimate, a batch of many gives what batches of one give."""
+    from dualhuman_builder.models.estimate import _estimate_views, _predictor
+    from dualhuman_builder.models.images import ImageFrames
+    from dualhuman_builder.models.training import load_run
+
+    tiny = {"size": 32, "backbone_width": 8, "backbone_blocks": [1, 1], "d_model": 32, "heads": 2, "layers": 1,
+            "ff": 64, "steps": 3}  # fmt: skip
+    run = train("pose-estimator", export, tmp_path / "pe", config_overrides=tiny, batch_size=2, progress=False)
+    spec, config, module = load_run(run)
+    module.eval()
+    predict, keys = _predictor(spec)
+    assert "prev_root" in keys
+    ds = ImageFrames(export, "all", size=int(config["size"]), augment=False, cache_mb=0)
+    jobs = []
+    for k in range(len(ds.ids)):
+        rows = np.flatnonzero((ds.index[:, 0] == k) & (ds.index[:, 1] == 0))
+        jobs.append((rows[np.argsort(ds.index[rows, 2])], np.zeros((2, 22, 3))))
+    assert len(jobs) >= 2 and all(len(r) >= 2 for r, _ in jobs)
+    one = _estimate_views(ds, jobs, predict, keys, module, torch.device("cpu"), batch_size=1)
+    many = _estimate_views(ds, jobs, predict, keys, module, torch.device("cpu"))
+    for (f1, j1, s1), (f2, j2, s2) in zip(one, many, strict=True):
+        np.testing.assert_array_equal(f1, f2)
+        np.testing.assert_allclose(j1, j2, atol=1e-5)
+        assert s1 == s2
