@@ -228,7 +228,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     manifest = read_manifest(src)
     fps = float(manifest["fps"])
     if prior is not None:
-        from dualhuman_builder.models.reaction_prior.spec import check_fps
+        from dualhuman_builder.models.reaction_prior.representation import check_fps
 
         check_fps(prior.config, fps, str(src))
     body = manifest.get("body_model", {})

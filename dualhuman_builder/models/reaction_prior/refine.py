@@ -37,7 +37,7 @@ import torch
 
 from dualhuman_builder.errors import DualhumanError
 from dualhuman_builder.models.reaction_prior.noise import corrupt
-from dualhuman_builder.models.reaction_prior.representation import canonical_pair, to_world
+from dualhuman_builder.models.reaction_prior.representation import canonical_pair, check_fps, to_world
 from dualhuman_builder.models.reaction_prior.noise import noise_model
 from dualhuman_builder.models.reaction_prior.vae import kl_gauss
 
@@ -210,7 +210,6 @@ def refine_export(run_dir: str | Path, export_dir: str | Path, out_dir: str | Pa
     from dualhuman_builder.models.derived import derived_item, write_derived_export
     from dualhuman_builder.labels import Vocabulary
     from dualhuman_builder.models.data import actor_is_b
-    from dualhuman_builder.models.reaction_prior.spec import check_fps
     from dualhuman_builder.models.training import load_run
     from dualhuman_builder.models.visibility import joint_visibility
     from dualhuman_builder.tracks import BodyTrack, InteractionSequence

@@ -134,3 +134,16 @@ def rows(representation: str, length: int) -> int:
     (a feature row describes a frame and the step after it)."""
     return int(length) - (representation == "features")
 
+
+
+def check_fps(config: dict, fps: float, where: str) -> None:
+    """Refuse data at ``fps`` for a prior whose ``config`` (complete, defaults merged) computes its
+    features at another rate (their contacts and facing smoothing depend on it); a prior on joints
+    takes any rate."""
+    from dualhuman_builder.errors import DualhumanError
+
+    if config["representation"] == "features" and abs(float(fps) - float(config["features_fps"])) > 1e-6:
+        want = float(config["features_fps"])
+        raise DualhumanError(f"{where} is at {float(fps):g} fps, but this reaction prior's features are computed at "
+                             f"{want:g} fps",
+                             fix=f"train the prior with --set features_fps={float(fps):g}, or use data at {want:g} fps")  # fmt: skip

@@ -43,8 +43,8 @@ from dualhuman_builder.models.base import Phase
 from dualhuman_builder.models.reaction_prior.inn import CouplingINN, MLPMapper
 from dualhuman_builder.models.reaction_prior.noise import NoiseModel, corrupt, noise_model
 from dualhuman_builder.models.motion_torch import recover_joints_torch, window_features
-from dualhuman_builder.models.reaction_prior.representation import (REPRESENTATIONS, Normalizer, canonical_pair, flat,
-                                                                    rows, unflat)  # fmt: skip
+from dualhuman_builder.models.reaction_prior.representation import (REPRESENTATIONS, Normalizer, canonical_pair,
+                                                                    check_fps, flat, rows, unflat)  # fmt: skip
 from dualhuman_builder.models.reaction_prior.vae import DCTCodec, MotionVAE, kl_gauss
 
 NAME = "reaction-prior"
@@ -179,19 +179,6 @@ class ReactionPrior(nn.Module):
         return self.mapper.inverse(torch.cat([mu_r, logstd_r], dim=-1)).chunk(2, dim=-1)
 
 
-def check_fps(config: dict[str, Any], fps: float, where: str) -> None:
-    """Refuse data at ``fps`` for a prior on features computed at another rate (their contacts and
-    facing smoothing depend on it); a prior on joints takes any rate."""
-    from dualhuman_builder.errors import DualhumanError
-
-    c = {**DEFAULTS, **config}
-    if c["representation"] == "features" and abs(float(fps) - float(c["features_fps"])) > 1e-6:
-        raise DualhumanError(f"{where} is at {float(fps):g} fps, but this reaction prior's features are computed at "
-                             f"{float(c['features_fps']):g} fps",
-                             fix=f"train the prior with --set features_fps={float(fps):g}, or use data at "
-                                 f"{float(c['features_fps']):g} fps")  # fmt: skip
-
-
 def _pair(batch: dict[str, Any]) -> tuple[torch.Tensor, ...]:
     """``(actor, reactor, origin, yaw)`` of a batch in the actor's window frame (:mod:`.representation`)."""
     return canonical_pair(batch["joints_actor"].float(), batch["joints_reactor"].float())
@@ -219,7 +206,7 @@ class ReactionPriorSpec:
         o = {k: config.get(k, v) for k, v in DATA_DEFAULTS.items()}
         data = InteractionWindows(export_dir, split, window=int(o["window"]), stride=o["stride"],
                                   visibility=bool(o["visibility"]), seed=seed, cameras=int(o["cameras"]))  # fmt: skip
-        check_fps(config, float(data.manifest.get("fps", 0.0)), str(export_dir))
+        check_fps({**DEFAULTS, **config}, float(data.manifest.get("fps", 0.0)), str(export_dir))
         return data
 
     def phases(self, config: dict[str, Any]) -> list[Phase]:
