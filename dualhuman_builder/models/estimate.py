@@ -279,7 +279,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
         say(f"estimating {sum(len(p[0]) for p in plan)} rendered frames of {len(sids)} sequences")
     views = _estimate_views(ds, [(p[0], p[4]) for p in plan], predict, keys, module, dev)
     for n, (sid, (rows, cam_name, R, t, _), (frames, est_cam, swapped)) in enumerate(zip(sids, plan, views), 1):
-        m = motion(sid)
+        m = motion(sid)  # read again: holding every sequence's motion through the batched pass would cost memory
         text = _read_json(src, f"sequences/{sid}/text.json")
         seq_doc = _read_json(src, f"sequences/{sid}/sequence.json")
         truth = np.stack([m["a.joints"], m["b.joints"]], axis=1).astype(np.float64)  # (T, 2, 22, 3)

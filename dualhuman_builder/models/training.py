@@ -278,6 +278,12 @@ def _dataset(export_dir: Path, split: str, config: dict[str, Any], seed: int, sp
     make = getattr(spec, "make_dataset", None)
     if make is not None:
         return make(export_dir, split, config, seed)
+    return motion_windows(export_dir, split, config, seed)
+
+
+def motion_windows(export_dir: str | Path, split: str, config: dict[str, Any], seed: int) -> InteractionWindows:
+    """The loop's default dataset: windows of motion shaped by the config's data options
+    (:data:`DATA_DEFAULTS`), for a spec's ``make_dataset`` that checks or wraps them."""
     o = _data_options(config)
     return InteractionWindows(export_dir, split, window=int(o["window"]), stride=o["stride"], visibility=bool(o["visibility"]),
                               seed=seed, cameras=int(o["cameras"]))  # fmt: skip
@@ -463,7 +469,7 @@ def _open_run(run_dir: Path, doc: dict[str, Any], resume: bool, defaults: dict[s
         keys = ("model", "config", "train", "phases")
         before = {k: old.get(k) for k in keys}
         if isinstance(before["config"], dict):
-            before["config"] = {**{k: v for k, v in defaults.items() if k not in before["config"]}, **before["config"]}
+            before["config"] = {**defaults, **before["config"]}
         diff = runs.differences(before, {k: doc[k] for k in keys})
         if old.get("export", {}).get("manifest_sha256") != doc["export"]["manifest_sha256"]:
             diff.append(f"export: manifest {str(old.get('export', {}).get('manifest_sha256'))[:12]} -> "

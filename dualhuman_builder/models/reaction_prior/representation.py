@@ -135,7 +135,6 @@ def rows(representation: str, length: int) -> int:
     return int(length) - (representation == "features")
 
 
-
 def check_fps(config: dict, fps: float, where: str) -> None:
     """Refuse data at ``fps`` for a prior whose ``config`` (complete, defaults merged) computes its
     features at another rate (their contacts and facing smoothing depend on it); a prior on joints

@@ -200,12 +200,9 @@ class ReactionPriorSpec:
 
     def make_dataset(self, export_dir: str | Path, split: str, config: dict[str, Any], seed: int):
         """The shared loop's windows of motion, after checking the export's frame rate (:func:`check_fps`)."""
-        from dualhuman_builder.models.data import InteractionWindows
-        from dualhuman_builder.models.training import DATA_DEFAULTS
+        from dualhuman_builder.models.training import motion_windows
 
-        o = {k: config.get(k, v) for k, v in DATA_DEFAULTS.items()}
-        data = InteractionWindows(export_dir, split, window=int(o["window"]), stride=o["stride"],
-                                  visibility=bool(o["visibility"]), seed=seed, cameras=int(o["cameras"]))  # fmt: skip
+        data = motion_windows(export_dir, split, config, seed)
         check_fps({**DEFAULTS, **config}, float(data.manifest.get("fps", 0.0)), str(export_dir))
         return data
 
