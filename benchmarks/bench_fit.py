@@ -27,6 +27,13 @@ largest worker process's (as it reports it).
 
     .venv/bin/python benchmarks/bench_fit.py --minutes 1 --collision held --workers 1,auto
 
+``--solver windows,take`` fits each mode with the window solver (the default fit) and with the
+whole take as one problem (``FitConfig.solver``, one process), side by side; each row has its joint
+error against the ground truth (mm):
+
+    .venv/bin/python benchmarks/bench_fit.py --inputs /tmp/hug1.npz --collision held --solver windows,take \
+        --out benchmarks/results/fit_solvers.json
+
 The take's inputs can be written once and read back (``--save-inputs FILE.npz``, ``--inputs
 FILE.npz``), so that a machine without the scene generator's time to spare (a lent GPU) fits the
 same frames:
@@ -126,7 +133,7 @@ def seam_jitter(res, truth: list, cfg) -> tuple[float, float, int]:
     from dualhuman_builder.fit.fitter import layout
 
     T, O = len(truth[0]), int(cfg.overlap)
-    segments = layout(T, cfg)
+    segments = layout(T, cfg) if cfg.solver == "windows" else [[]]  # the take solver has no seams
     near = np.zeros(T, bool)
     for seg in segments[1:]:
         s = seg[0][1]  # the later segment starts 2 x overlap frames before the earlier one ends
@@ -139,6 +146,11 @@ def seam_jitter(res, truth: list, cfg) -> tuple[float, float, int]:
         return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
 
     return rms(acc[at]), rms(acc[~at]), len(segments) - 1
+
+
+def joint_error(res, truth: list) -> float:
+    """Mean distance (mm) of the fitted joints (22, both actors, every frame) to the ground truth."""
+    return float(np.mean([np.linalg.norm(tr.joints() - gt, axis=-1).mean() for tr, gt in zip(res.sequence.actors, truth)]) * 1000)
 
 
 def anny_rate(model, batch: int, runs: int) -> float:
@@ -170,6 +182,9 @@ def main():
     ap.add_argument("--workers", default="auto",
                     help="processes to fit the take's segments on, this one included: a number or auto (the fit's "
                          "default), or a comma-separated list to compare (default: auto)")
+    ap.add_argument("--solver", default="windows",
+                    help="the fit's solver: windows (the default fit), take (the whole take as one problem, one "
+                         "process), or windows,take to compare them in the same run (ratios to the first)")
     ap.add_argument("--save-inputs", metavar="FILE", help="write the take's inputs and ground truth to FILE (.npz)")
     ap.add_argument("--inputs", metavar="FILE", help="read the take from FILE (--save-inputs) instead of generating it; "
                     "--fps is then the file's")
@@ -180,6 +195,11 @@ def main():
     from dualhuman_builder.fit.fitter import FitConfig, fit_actors
 
     workers = [None if w.strip() == "auto" else int(w) for w in args.workers.split(",")]
+    solvers = [x.strip() for x in args.solver.split(",")]
+    if not set(solvers) <= {"windows", "take"}:
+        ap.error(f"--solver: windows, take or both, got {args.solver!r}")
+    # (solver, workers, key): the take solver runs in one process whatever --workers says
+    settings = [(sv, w, str(w or "auto") if sv == "windows" else "take") for sv in solvers for w in (workers if sv == "windows" else [1])]
 
     model = get_body_model(args.device)
     truth: list = []
@@ -209,26 +229,29 @@ def main():
     modes = {"all": ("off", "held", "exact")}.get(args.collision, (args.collision,))
     names = {"off": "without collision term", "held": "with collision term, contacts held",
              "exact": "with collision term, contacts located at every evaluation"}
+    base = settings[0][2]
     for mode in modes:
-        cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads)
-        for w in workers:
+        for solver, w, key in settings:
+            cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads,
+                            solver=solver)  # fmt: skip
             rates = []
             for _ in range(args.runs):
                 res = fit_actors(model, inp, args.fps, cfg, workers=w)
                 rates.append(res.summary["frame_pairs_per_s"])
-            medians[mode, w] = statistics.median(rates)
+            medians[mode, key] = statistics.median(rates)
             s = res.summary
             n = s["processes"]
             worker_mb = max(worker_mb, s.get("worker_peak_rss_mb") or 0)
             extra = (f", frames in collision {s['collision_frames']}, max penetration {s['max_penetration_after_mm']:.2f} mm, "
                      f"frames located exactly after a stall {len(s['collision_exact_frames'])}, windows fitted again exactly {len(s['collision_exact_windows'])}, "
                      f"seams fitted again {len(s['seams_fitted_again'])} of {s['segments'] - 1}") if mode != "off" else ""  # fmt: skip
-            ratio = f", {medians[mode, w] / medians[mode, workers[0]]:.2f}x the first" if w != workers[0] else ""
-            print(f"fit {names[mode]}, {n} process{'es' if n > 1 else ''}: {medians[mode, w]:.1f} frame pairs/s "
-                  f"(median of {args.runs}{extra}){ratio}", flush=True)  # fmt: skip
+            ratio = f", {medians[mode, key] / medians[mode, base]:.2f}x the first" if key != base else ""
+            mpjpe = joint_error(res, truth)
+            print(f"fit {names[mode]}, {solver} solver, {n} process{'es' if n > 1 else ''}: {medians[mode, key]:.1f} frame pairs/s "
+                  f"(median of {args.runs}{extra}); joint error {mpjpe:.2f} mm{ratio}", flush=True)  # fmt: skip
             at, elsewhere, seams = seam_jitter(res, truth, cfg)
-            fit = {"mode": mode, "workers": w or "auto", "processes": n, "pairs_per_s": medians[mode, w],
-                   "runs_pairs_per_s": rates, "x_first_workers": medians[mode, w] / medians[mode, workers[0]],
+            fit = {"mode": mode, "solver": solver, "workers": w or "auto", "processes": n, "pairs_per_s": medians[mode, key],
+                   "runs_pairs_per_s": rates, "x_first": medians[mode, key] / medians[mode, base], "mpjpe_mm": mpjpe,
                    "seam_jitter": {"at_seams": at, "elsewhere": elsewhere, "seams": seams},
                    "worker_peak_rss_mb": s.get("worker_peak_rss_mb")}  # fmt: skip
             if mode != "off":
@@ -240,39 +263,40 @@ def main():
             if seams:
                 print(f"  joint error's frame-to-frame acceleration (RMS): {at:.2f} mm/frame^2 around the {seams} seams, "
                       f"{elsewhere:.2f} elsewhere", flush=True)  # fmt: skip
-    for w in workers:
-        if ("held", w) in medians and ("exact", w) in medians:
-            print(f"held / exact ({w or 'auto'} workers): {medians['held', w] / medians['exact', w]:.2f}x")
+    for _, _, key in settings:
+        if ("held", key) in medians and ("exact", key) in medians:
+            print(f"held / exact ({key}): {medians['held', key] / medians['exact', key]:.2f}x")
     cfg = FitConfig()
     rate = anny_rate(model, 2 * cfg.window, args.runs + 2)
     print(f"anny forward+backward at batch {2 * cfg.window}: {rate:.0f} bodies/s = {rate / 2:.0f} frame pairs/s")
-    print("ratio fit / anny raw: " + ", ".join(f"{v / (rate / 2):.3f} {m} ({w or 'auto'} workers)" for (m, w), v in medians.items()))
+    print("ratio fit / anny raw: " + ", ".join(f"{v / (rate / 2):.3f} {m} ({key})" for (m, key), v in medians.items()))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB this process"
           + (f", {worker_mb} MB the largest worker process (VmHWM)" if worker_mb else "")
           + (f"; peak GPU memory {torch.cuda.max_memory_allocated() / 2**20:.0f} MB (max_memory_allocated)"
              if model.device.type == "cuda" else ""))
 
-    first = {m: medians[m, workers[0]] for m in modes}
+    first = {m: medians[m, base] for m in modes}
     figures: dict = {
         "take": {"minutes": args.minutes, "fps": args.fps, "frame_pairs": T, "inputs": args.inputs or "generated hug, seed 0",
                  "device": args.device, "torch_threads": torch.get_num_threads()},
         "pairs_per_s": first,
         "fits": fits,
-        "held_over_exact": {str(w or "auto"): medians["held", w] / medians["exact", w] for w in workers
-                            if ("held", w) in medians and ("exact", w) in medians},
+        "held_over_exact": {key: medians["held", key] / medians["exact", key] for _, _, key in settings
+                            if ("held", key) in medians and ("exact", key) in medians},
         "anny": {"batch": 2 * cfg.window, "bodies_per_s": rate, "pairs_per_s": rate / 2},
         "fit_over_anny": {m: v / (rate / 2) for m, v in first.items()},
         "peak_rss_mb": {"this_process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                         "largest_worker": worker_mb or None},
         "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20 if model.device.type == "cuda" else None,
     }  # fmt: skip
-    rows = [[f"{names[f['mode']]}, --workers {f['workers']} ({f['processes']} process{'es' if f['processes'] > 1 else ''})",
+    rows = [[f"{names[f['mode']]}, {f['solver']} solver" + (f", --workers {f['workers']}" if f["solver"] == "windows" else "")
+             + f" ({f['processes']} process{'es' if f['processes'] > 1 else ''})",
              f"fits.{k}.pairs_per_s",
-             f"fits.{k}.x_first_workers", f"fits.{k}.max_penetration_mm" if f["mode"] != "off" else "",
+             f"fits.{k}.x_first", f"fits.{k}.mpjpe_mm", f"fits.{k}.max_penetration_mm" if f["mode"] != "off" else "",
              f"fits.{k}.seam_jitter.at_seams", f"fits.{k}.seam_jitter.elsewhere"] for k, f in enumerate(fits)]
-    rows.append([f"anny forward+backward at batch {2 * cfg.window} (frame pairs/s)", "anny.pairs_per_s", "", "", "", ""])
+    rows.append([f"anny forward+backward at batch {2 * cfg.window} (frame pairs/s)", "anny.pairs_per_s", "", "", "", "", ""])
     tables = [Table(f"{args.minutes:g}-minute hug, {T} frame pairs at {args.fps:g} fps, on {args.device} (median of "
-                    f"{args.runs})", ["fit", "frame pairs/s", "x first workers setting", "max penetration mm",
+                    f"{args.runs})", ["fit", "frame pairs/s", "x first setting", "joint error mm", "max penetration mm",
                                       "seam jitter at seams mm/frame²", "elsewhere"], rows),
               Table("ratios in the same run", ["ratio", "value"],
                     [[f"fit {m} / anny forward+backward", f"fit_over_anny.{m}"] for m in first]

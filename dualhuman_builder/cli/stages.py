@@ -105,6 +105,10 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
               help="Locate the collision contacts at every L-BFGS evaluation instead of holding them through each pass "
                    "(the default falls back to this where held contacts stall; slower; for comparison).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
+@click.option("--solver", type=click.Choice(["windows", "take"]), default="windows", show_default=True,
+              help="windows: windows of --window frames one after another, segments on --workers processes (the "
+                   "fastest on a CPU); take: the whole take as one problem in one process, with a per-frame "
+                   "collision schedule (built for a GPU; --window and --workers do not apply).")
 @click.option("--device", default="cpu", show_default=True,
               help="torch device for the fit, e.g. cuda. Prefer the CPU even where a GPU is: the fit's many small "
                    "tensor operations gain little on a GPU, and a GPU fit runs in one process (no --workers).")
@@ -116,7 +120,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
                    "CPU, no more than there are segments (two windows each) or than leave ~2 GiB of available memory "
                    "each; 1 on a GPU. The result does not depend on it.")
 def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, mounts_from: str | None, force: bool,
-        no_collision: bool, relaxed_hands: bool, exact_contacts: bool, window: int, device: str, threads: int,
+        no_collision: bool, relaxed_hands: bool, exact_contacts: bool, window: int, solver: str, device: str, threads: int,
         workers: int | None):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
@@ -133,13 +137,14 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
     Examples:
       dualhuman fit WS --take T001
       dualhuman fit WS --take T002 --mounts-from CAL --workers 4
+      dualhuman fit WS --take T003 --solver take --device cuda
     """
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.stage import run_fit
     from dualhuman_builder.workspace import Workspace
 
     cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, collision_hold_contacts=not exact_contacts,
-                    window=window, device=device, torch_threads=threads)  # fmt: skip
+                    window=window, solver=solver, device=device, torch_threads=threads)  # fmt: skip
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
                       suit_chain=not no_suit_chain, workers=workers, mounts_from=mounts_from)  # fmt: skip

@@ -16,6 +16,10 @@ from dataclasses import dataclass
 class FitConfig:
     """Windows, passes, term weights and the collision schedule of one fit (see the module docstring)."""
 
+    #: ``"windows"``: windows fitted one after another, each with its own collision rounds
+    #: (:mod:`~dualhuman_builder.fit.segment`); ``"take"``: the whole take as one problem with a per-frame
+    #: collision schedule (:mod:`~dualhuman_builder.fit.take`; the window and segment settings do not apply)
+    solver: str = "windows"
     #: frames per window (each window is one L-BFGS problem over both actors)
     window: int = 48
     #: frames a window shares with the one before it (it starts from that one's answer there)
@@ -126,6 +130,10 @@ class FitConfig:
     #: differently from run to run (docs/decisions/0018-segments-in-worker-processes.md;
     #: ``bench_fit.py --threads 2`` compares). The collision term's queries keep their own threads
     torch_threads: int = 1
+
+
+#: the values of :attr:`FitConfig.solver`
+SOLVERS = ("windows", "take")
 
 
 def config_dict(cfg: FitConfig) -> dict:

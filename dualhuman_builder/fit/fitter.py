@@ -28,11 +28,12 @@ import torch
 
 from dualhuman_builder.children import available_memory, cpu_count
 from dualhuman_builder.fit.actors import stance_mask
-from dualhuman_builder.fit.config import FitConfig, config_dict
+from dualhuman_builder.fit.config import SOLVERS, FitConfig, config_dict
 from dualhuman_builder.fit.inputs import ActorInput, FitError, inputs_from_fused
 from dualhuman_builder.fit.layout import SegmentAnswer, cross_fade, layout
 from dualhuman_builder.fit.seams import apply_seams, fit_seam
 from dualhuman_builder.fit.segment import SegmentFitter
+from dualhuman_builder.fit.take import TakeFitter
 from dualhuman_builder.fit.workers import fit_in_workers
 
 #: what one more fitting process may need (its peak resident memory on the 1-minute benchmark hug,
@@ -82,8 +83,39 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
 def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, progress, workers: int | None) -> FitResult:
     say = progress or (lambda _m: None)
     T = _frame_count(inputs)
+    if cfg.solver not in SOLVERS:
+        raise FitError(f"unknown fit solver {cfg.solver!r}; choose one of {', '.join(SOLVERS)}")
     t_start = time.perf_counter()
-    segments = layout(T, cfg)
+    if cfg.solver == "take":
+        inputs, offsets = _offsets_on_body(inputs, cfg, say)
+        fitter = TakeFitter(model, inputs, fps, cfg, threads=collision_threads(1))
+        segments, n_workers, fitted = [[(0, 0, T)]], 1, [fitter.fit(say)]
+        joined, seams, worker_mb = cross_fade(fitted, T), [], None
+    else:
+        segments = layout(T, cfg)
+        fitter, n_workers, fitted, joined, seams, worker_mb, offsets = _fit_windows(model, inputs, fps, cfg, segments, workers, say)
+    tracks, frames = _tracks_and_frames(model, fitter, joined, fps)
+    valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in fitter.acts])
+    seq = _interaction(tracks)
+    seconds = time.perf_counter() - t_start  # everything: the segments, the seams, the outputs and diagnostics
+    summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
+               **_collision_counts(fitted), "segments": len(segments), "processes": n_workers,
+               "seams_fitted_again": seams, "worker_peak_rss_mb": None if worker_mb is None else round(worker_mb),
+               **({"tracker_offset_change_mm": offsets} if offsets else {})}  # fmt: skip
+    if fitter.collide is not None:
+        summary.update(max_penetration_before_mm=round(float(joined["pen_before"].max() * 1000), 3),
+                       max_penetration_after_mm=round(float(joined["pen_after"].max() * 1000), 3),
+                       penetrating_share_before=float(joined["share_before"].max()),
+                       penetrating_share_after=float(joined["share_after"].max()))  # fmt: skip
+    return FitResult(seq if seq is not None else tracks, frames, summary, valid)
+
+
+def _fit_windows(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, segments: list, workers: int | None, say) -> tuple:
+    """The window solver over ``segments`` (:func:`layout`), on ``workers`` processes (see
+    :func:`fit_actors`): the fitter, the processes used, the answers fitted (the segments'
+    and the seams' windows fitted again: a pass there can diverge or stall too), the joined corrections
+    (:func:`~dualhuman_builder.fit.layout.cross_fade`, seams applied), the seams fitted again, the
+    largest worker's peak RSS (MB, None in this process) and the tracker offsets' changes."""
     n_windows = sum(len(seg) for seg in segments)
     n_workers = fit_workers(len(segments), cfg) if workers is None else max(1, min(int(workers), len(segments)))
     if n_workers > 1 and not _workers_build_it(model):
@@ -97,24 +129,10 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     else:
         parts = [fitter.segment(seg, n_windows, say) for seg in segments]
         seams_done, worker_mb = [fit_seam(fitter, p, q, say) for p, q in zip(parts, parts[1:])], None
-    joined = cross_fade(parts, T)
+    joined = cross_fade(parts, _frame_count(inputs))
     seams = apply_seams(joined, seams_done)
-    tracks, frames = _tracks_and_frames(model, fitter, joined, fps)
-    valid = np.logical_and.reduce([a.valid.cpu().numpy() for a in fitter.acts])
-    seq = _interaction(tracks)
-    seconds = time.perf_counter() - t_start  # everything: the segments, the seams, the outputs and diagnostics
-    # the seams' windows fitted again count with the segments (a pass there can diverge or stall too)
     fitted = parts + [s.fixed for s in seams_done if s is not None and s.fixed is not None]
-    summary = {"frames": T, "fit_seconds": round(seconds, 3), "frame_pairs_per_s": round(T / max(seconds, 1e-9), 2),
-               **_collision_counts(fitted), "segments": len(segments), "processes": n_workers,
-               "seams_fitted_again": seams, "worker_peak_rss_mb": None if worker_mb is None else round(worker_mb),
-               **({"tracker_offset_change_mm": offsets} if offsets else {})}  # fmt: skip
-    if fitter.collide is not None:
-        summary.update(max_penetration_before_mm=round(float(joined["pen_before"].max() * 1000), 3),
-                       max_penetration_after_mm=round(float(joined["pen_after"].max() * 1000), 3),
-                       penetrating_share_before=float(joined["share_before"].max()),
-                       penetrating_share_after=float(joined["share_after"].max()))  # fmt: skip
-    return FitResult(seq if seq is not None else tracks, frames, summary, valid)
+    return fitter, n_workers, fitted, joined, seams, worker_mb, offsets
 
 
 def _offsets_on_body(inputs: list[ActorInput], cfg: FitConfig, say) -> tuple[list[ActorInput], dict]:

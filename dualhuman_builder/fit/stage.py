@@ -154,6 +154,8 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
         return summary
 
     params = {k: getattr(config, k) for k in config.__dataclass_fields__}
+    if params["solver"] == "windows":  # the solver a fit had before it could be chosen: such fits stay up to date
+        del params["solver"]
     return ws.run_stage(FIT, compute, take=take, params=params, depends_on=[("fuse", None)],
                         version=FIT_VERSION, force=force)  # fmt: skip
 

@@ -1,0 +1,217 @@
+"""The take solver (``FitConfig.solver = "take"``): the whole take, both actors, as one problem
+(:class:`TakeFitter`).
+
+The window solver (:mod:`~dualhuman_builder.fit.segment`) fits 48-frame windows one after another,
+each with its own collision rounds and per-window rules (undo a round that left the window deeper,
+restart stuck frames, refit a window bent out of shape, seams fitted again). Here every frame's
+corrections are one set of tensors, and the schedule is per frame instead of per window:
+
+1. **Skeleton pass**: L-BFGS on the skeleton energy (:mod:`~dualhuman_builder.fit.energy`) of every
+   frame at once, ``cfg.iterations`` iterations. The smoothness terms couple neighbouring frames
+   directly, so there are no contexts, cross-fades or seams.
+2. **Collision continuation**: each frame that touches its partner carries its own multiple of
+   ``cfg.collision_weight``: 1 where first found in contact (``collision_weight_step`` where deeper
+   than ``collision_deep_m``), and one ``collision_weight_step`` more after every round that leaves
+   it over a tolerance. A round locates the contacts of the frames still over a tolerance (held as
+   planes through the round, :meth:`~dualhuman_builder.geometry.collision.CollisionTerm.linearise`)
+   and moves them and the ``SMOOTH_REACH`` frames on either side with one L-BFGS run of
+   ``cfg.collision_iterations`` iterations; settled frames keep their term and hold still. A frame a
+   held round left stalled (no shallower than ``STALL_SHARE`` of its depth) is located at every
+   evaluation from then on, as in the window solver (docs/decisions/0016-held-contacts.md). At most
+   ``cfg.collision_rounds`` rounds.
+
+No pass is undone and no frame restarted: a frame that a round leaves deeper simply weighs more in
+the next. The contact pass (:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
+
+Contacts are located ``CHUNK`` frames at a time, so memory grows with the frames in contact, not
+with whole meshes of the take. Depths are metres; rows are timeline frames ``0 .. T - 1``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.fit.collision_rounds import SMOOTH_REACH, STALL_SHARE, dilate
+from dualhuman_builder.fit.layout import SegmentAnswer
+from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR, FitProblem
+
+#: frames posed at once where contacts are located (bounds the meshes held in memory)
+CHUNK = 256
+
+
+class _Diverged(Exception):
+    """An L-BFGS line search stepped to non-finite corrections."""
+
+
+def _finite(tensors) -> bool:
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
+
+
+class TakeFitter(FitProblem):
+    """A take's :class:`~dualhuman_builder.fit.problem.FitProblem` fitted as one problem (see the module
+    docstring): :meth:`fit` returns the whole take's :class:`~dualhuman_builder.fit.layout.SegmentAnswer`."""
+
+    def fit(self, say: Callable[[str], None]) -> SegmentAnswer:
+        """Fit every frame of the take; ``say`` gets one line per pass."""
+        T, P, dev, cfg = self.T, PARAMS_PER_ACTOR, self.dev, self.cfg
+        S = len(MVN_SEGMENTS)
+        self.sl, self.none = slice(0, T), [None] * len(self.acts)
+        params = []
+        for _ in self.acts:
+            params += [torch.zeros(T, S, 3, device=dev, requires_grad=True), torch.zeros(T, 3, device=dev, requires_grad=True),
+                       torch.zeros(T, 4, device=dev, requires_grad=cfg.hand_opening)]  # fmt: skip
+        self.params = params
+        self.bones = [p for k in range(len(self.acts)) for p in params[P * k : P * k + 2]]
+        self.hands = [params[P * k + 2] for k in range(len(self.acts))] if cfg.hand_opening else []
+        self._skeleton_pass()
+        say(f"take: skeleton pass over {T} frames")
+        out = SegmentAnswer(0, [], [], [], np.zeros(T), np.zeros(T))
+        if self.collide is not None:
+            self.collide.clear_memo()
+            depth, share = self._measure(np.arange(T))
+            out.pen_before, out.share_before = depth.copy(), share.copy()
+            out.collided = int((depth > 0).sum())
+            self._continuation(depth, share, out, say)
+            out.pen_after, out.share_after = depth, share
+        out.delta, out.dtransl, out.opening = ([params[P * k + j].detach().cpu().numpy() for k in range(len(self.acts))]
+                                               for j in range(P))  # fmt: skip
+        return out
+
+    # ---- the passes
+
+    def _skeleton_pass(self) -> None:
+        """L-BFGS on the take's skeleton energy over the bones' corrections (no term there reads the
+        fingers), ``cfg.iterations`` iterations, in place."""
+        opt = torch.optim.LBFGS(self.bones, lr=1.0, max_iter=self.cfg.iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            e, _ = self.energy(self.params, self.sl, self.none, self.none)
+            e.backward()
+            return e
+
+        opt.step(closure)
+
+    def _continuation(self, depth: np.ndarray, share: np.ndarray, out: SegmentAnswer, say) -> None:
+        """The collision rounds (module docstring), updating ``depth``/``share`` ``(T,)`` in place and
+        ``out``'s counts."""
+        cfg = self.cfg
+        step = cfg.collision_weight_step
+        mult = np.zeros(self.T)  # per frame, the multiple of collision_weight its term carries (0: none yet)
+        hit = depth > 0
+        mult[hit] = np.where((depth[hit] > cfg.collision_deep_m) & (cfg.collision_deep_m > 0), step, 1.0)
+        exact = np.zeros(self.T, bool)  # frames located at every evaluation (a held round stalled there)
+        for n_round in range(1, max(int(cfg.collision_rounds), 1) + 1):
+            over = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
+            if not over.any():
+                return
+            if n_round > 1:
+                mult[over] *= step
+            moving = dilate(over, SMOOTH_REACH)
+            rows = np.flatnonzero(moving)
+            termed = np.flatnonzero(moving & (mult > 0))  # the moving frames with a collision term
+            start = depth[rows].copy()
+            label = f"take: collision round {n_round}, {int(over.sum())} frames over the tolerance"
+            if not self._round(rows, termed, mult, exact):
+                out.diverged.append(label)
+                say(f"{label}: the line search stepped to non-finite corrections; kept the round before")
+                return
+            depth[rows], share[rows] = self._measure(rows)
+            out.rounds = n_round
+            fresh = (depth > 0) & (mult == 0)
+            mult[fresh] = step ** (n_round - 1)  # frames pushed into contact join at this round's level
+            stalled = rows[(depth[rows] > np.maximum(cfg.collision_tolerance_m, STALL_SHARE * start)) & ~exact[rows]]
+            stalled = stalled[mult[stalled] > 0]
+            if len(stalled):
+                exact[stalled] = True
+                out.stalled.append(label)
+                out.exact_frames += [int(f) for f in stalled]
+            say(f"{label}: deepest {1000 * depth.max():.1f} mm after" + (f", {len(stalled)} stalled" if len(stalled) else ""))
+
+    def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray) -> bool:
+        """One collision round: L-BFGS over the corrections of frames ``rows`` (the others held), on the
+        skeleton energy plus ``collision_weight`` x ``mult`` times the collision term of frames
+        ``termed`` (held planes located here, or located at every evaluation where ``exact``). False
+        (the corrections restored) when the line search stepped to non-finite values."""
+        cfg, dev, collide, acts, P = self.cfg, self.dev, self.collide, self.acts, PARAMS_PER_ACTOR
+        params = self.params
+        saved = [p.detach().clone() for p in params]
+        held_rows, exact_rows = termed[~exact[termed]], termed[exact[termed]]
+        held = self._locate(held_rows)  # [(first index into termed-order rows, rows, Linearised)]
+        order = np.concatenate([held_rows, exact_rows])  # the rows posed with the gradient, in this order
+        order_t = torch.as_tensor(order, device=dev)
+        w = torch.as_tensor(cfg.collision_weight * mult[order], dtype=params[0].dtype, device=dev)
+        frozen = np.ones(self.T, bool)
+        frozen[rows] = False
+        frozen_t = torch.as_tensor(np.flatnonzero(frozen), device=dev) if frozen.any() else None
+        opt = torch.optim.LBFGS(self.bones + self.hands, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            if not _finite(params):
+                raise _Diverged
+            opt.zero_grad()
+            e, rots = self.energy(params, self.sl, self.none, self.none)
+            if len(order):
+                posed = [a.rig.pose(rots[k].index_select(0, order_t), a.transl0[order_t] + params[P * k + 1].index_select(0, order_t),
+                                    False, params[P * k + 2].index_select(0, order_t)) for k, a in enumerate(acts)]  # fmt: skip
+
+                def at(first):  # the collision term's batch row f is posed row first + f
+                    return lambda body, f, v: acts[body].rig.skin_at(posed[body], torch.as_tensor(f, device=dev) + first, v)
+
+                for first, n, lin in held:
+                    e = e + (w[first : first + n] * collide.linear_loss(lin, at(first), device=dev)).sum()
+                for c0 in range(0, len(exact_rows), CHUNK):
+                    sub = exact_rows[c0 : c0 + CHUNK]
+                    with torch.no_grad():
+                        vs = [p.vertices for p in self.pose_bodies(params, self.sl, torch.as_tensor(sub, device=dev))]
+                    first = len(held_rows) + c0
+                    loss = collide(vs[0], vs[1], keys=sub, points=at(first)).loss
+                    e = e + (w[first : first + len(sub)] * loss).sum()
+            e.backward()
+            if frozen_t is not None:  # the held frames: no step
+                for q in params:
+                    if q.grad is not None:
+                        q.grad.index_fill_(0, frozen_t, 0.0)
+            return e
+
+        try:
+            opt.step(closure)
+        except _Diverged:
+            pass
+        if not _finite(params):
+            with torch.no_grad():
+                for p, s in zip(params, saved):
+                    p.copy_(s)
+            return False
+        return True
+
+    # ---- depths and contacts, CHUNK frames at a time
+
+    def _locate(self, rows: np.ndarray) -> list:
+        """The contacts of frames ``rows`` (sorted) held as planes, per chunk ``(first, n, lin)``: the
+        chunk's rows are ``rows[first : first + n]``, ``lin`` their
+        :class:`~dualhuman_builder.geometry.collision.Linearised`."""
+        out = []
+        for c0 in range(0, len(rows), CHUNK):
+            sub = rows[c0 : c0 + CHUNK]
+            with torch.no_grad():
+                vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(sub, device=self.dev))]
+                lin = self.collide.linearise(vs[0], vs[1], keys=sub, margin_m=self.cfg.collision_margin_m)
+            out.append((c0, len(sub), lin))
+        return out
+
+    def _measure(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The deepest vertex (m) and penetrating share ``(len(rows),)`` each of frames ``rows`` at the
+        current corrections."""
+        depth, share = np.zeros(len(rows)), np.zeros(len(rows))
+        for c0 in range(0, len(rows), CHUNK):
+            sub = rows[c0 : c0 + CHUNK]
+            with torch.no_grad():
+                vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(sub, device=self.dev))]
+                pen = self.collide.penetration(vs[0], vs[1], keys=sub)
+            depth[c0 : c0 + len(sub)], share[c0 : c0 + len(sub)] = pen["max_depth_m"], pen["share"]
+        return depth, share

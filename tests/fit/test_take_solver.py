@@ -1,0 +1,123 @@
+"""The take solver (:mod:`dualhuman_builder.fit.take`): the whole take as one problem, with a per-frame
+collision schedule instead of the window solver's per-window rules."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dualhuman_builder.body.model import get_body_model
+from dualhuman_builder.fit.fitter import ActorInput, FitConfig, FitError, fit_actors
+from dualhuman_builder.fit.collision_rounds import SMOOTH_REACH, dilate
+from dualhuman_builder.fit.take import TakeFitter
+
+FPS = 15.0
+
+
+@pytest.fixture(scope="module")
+def model():
+    return get_body_model()
+
+
+def _step_in(T: int) -> list:
+    """Two actors in the rest pose for ``T`` frames, no trackers: b stands 60 cm from a and steps in to
+    10 cm at frame ``T // 2`` and back out, so only the frames around it collide."""
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (T, 23, 1))
+    pelvis = np.tile([0.0, 0.95, 0.0], (T, 1))
+    x = 0.6 - 0.5 * np.exp(-(((np.arange(T) - T // 2) / 3.0) ** 2))
+    return [ActorInput(name, {}, quat, pelvis + np.stack([dx, 0 * dx, 0 * dx], 1), np.ones(T, bool), np.zeros((T, 0, 3)),
+                       np.zeros((T, 0), bool), np.zeros(0, np.int64), np.zeros((0, 3)),
+                       np.tile([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], (T, 1, 1)))
+            for name, dx in (("a", np.zeros(T)), ("b", x))]  # fmt: skip
+
+
+CFG = FitConfig(solver="take", iterations=4, collision_iterations=4, collision_rounds=3, hand_opening=False)
+
+
+def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model):
+    """The collision rounds move the frames over a tolerance and the two on either side of them; every
+    other frame keeps the skeleton pass's answer bit for bit (the fit without the collision term), and
+    the deepest penetration falls."""
+    T = 40
+    inputs = _step_in(T)
+    off = fit_actors(model, inputs, FPS, dataclasses.replace(CFG, collision=False))
+    rounds = []
+    real = TakeFitter._round
+
+    def spy(self, rows, termed, mult, exact):
+        rounds.append(rows.copy())
+        return real(self, rows, termed, mult, exact)
+
+    TakeFitter._round = spy
+    try:
+        on = fit_actors(model, inputs, FPS, CFG)
+    finally:
+        TakeFitter._round = real
+    s = on.summary
+    assert s["segments"] == 1 and s["processes"] == 1 and s["seams_fitted_again"] == []
+    hit = np.flatnonzero(on.frames["penetration depth (mm)/without collision term"] > 0)
+    assert len(hit) and hit[0] > 8 and hit[-1] < T - 9  # a few frames in the middle collide
+    assert rounds and s["collision_rounds_used"] == len(rounds)
+    moved = np.unique(np.concatenate(rounds))
+    assert moved.min() >= hit[0] - 2 and moved.max() <= hit[-1] + 2  # over a tolerance, and 2 frames around
+    still = np.setdiff1d(np.arange(T), moved)
+    for a, b in zip(on.sequence.actors, off.sequence.actors):
+        assert np.array_equal(np.asarray(a.pose)[still], np.asarray(b.pose)[still])
+        assert np.array_equal(np.asarray(a.transl)[still], np.asarray(b.transl)[still])
+    assert s["max_penetration_after_mm"] < 0.5 * s["max_penetration_before_mm"]
+    assert s["collision_frames"] == len(hit)
+
+
+def test_a_frame_left_over_the_tolerance_weighs_one_step_more_in_the_next_round(model, monkeypatch):
+    """The schedule is per frame: a frame's collision weight starts at ``collision_weight`` (a step
+    ahead where deeper than ``collision_deep_m``) and grows by ``collision_weight_step`` after each round
+    that leaves it over a tolerance; a frame that settled keeps its weight and holds still."""
+    T = 12
+    inputs = _step_in(T)
+    seen = []
+    real = TakeFitter._round
+
+    def spy(self, rows, termed, mult, exact):
+        seen.append((rows.copy(), mult.copy()))
+        return real(self, rows, termed, mult, exact)
+
+    monkeypatch.setattr(TakeFitter, "_round", spy)
+    # a weak term, so that the first round leaves frames over the tolerance
+    cfg = dataclasses.replace(CFG, collision_rounds=3, collision_iterations=2, collision_deep_m=0.0, collision_weight=1e3)
+    fit_actors(model, inputs, FPS, cfg)
+    assert len(seen) >= 2
+    (rows1, m1), (rows2, m2) = seen[0], seen[1]
+    step = cfg.collision_weight_step
+    assert set(np.unique(m1[m1 > 0])) == {1.0}  # every frame in contact starts at the base weight
+    again = np.intersect1d(rows1, np.flatnonzero(m1 > 0))
+    raised = (m1 > 0) & (m2 == m1 * step)
+    assert raised.any() and np.isin(np.flatnonzero(raised), again).all()  # the frames still over went up one step
+    assert (m2 >= m1).all()  # never lowered: a settled frame keeps its term
+    # round 2 moves the frames over a tolerance (raised, or pushed into contact by round 1 and raised
+    # from its level) and the SMOOTH_REACH frames on either side; the settled ones hold still
+    over = raised | ((m1 == 0) & (m2 == step))
+    assert np.array_equal(rows2, np.flatnonzero(dilate(over, SMOOTH_REACH)))
+
+
+def test_a_round_that_steps_to_non_finite_corrections_is_undone(model, monkeypatch):
+    """A poisoned collision loss sends the line search to NaN: the round is undone (the skeleton pass's
+    answer kept), reported, and the bodies stay finite."""
+    from dualhuman_builder.geometry import collision
+
+    inputs = _step_in(20)
+    real = collision.CollisionTerm.linear_loss
+    monkeypatch.setattr(collision.CollisionTerm, "linear_loss", lambda self, lin, points, device=None, dtype=None:
+                        real(self, lin, points, device) * float("nan"))  # fmt: skip
+    res = fit_actors(model, inputs, FPS, CFG)
+    (label,) = res.summary["collision_diverged"]
+    assert label.startswith("take: collision round 1, ") and res.summary["collision_rounds_used"] == 0
+    assert res.summary["max_penetration_after_mm"] == pytest.approx(res.summary["max_penetration_before_mm"])
+    for track in res.sequence.actors:
+        assert np.isfinite(np.asarray(track.pose)).all() and np.isfinite(np.asarray(track.transl)).all()
+
+
+def test_an_unknown_solver_is_refused(model):
+    with pytest.raises(FitError, match="unknown fit solver 'segments'"):
+        fit_actors(model, _step_in(4), FPS, FitConfig(solver="segments"))
