@@ -51,8 +51,12 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("fit", "benchmarks/bench_fit.py --minutes 1 --collision held --runs 1 --workers 1,auto", ""),
     ("fit_cuda", "benchmarks/bench_fit.py --inputs HUG.npz --device cuda --collision held --runs 1",
      "on a machine with a CUDA GPU; HUG.npz from `bench_fit.py --minutes 1 --save-inputs HUG.npz --runs 0`"),
+    ("fit_solvers", "benchmarks/bench_fit.py --collision held --solver windows,take --out benchmarks/results/fit_solvers.json",
+     ""),
     ("fit_accuracy", "benchmarks/bench_fit_accuracy.py --keep TAKES",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
+    ("fit_accuracy_take", "benchmarks/bench_fit_accuracy.py --keep TAKES --solver take",
+     "with TAKES the folder of `fit_accuracy`'s run (the same recordings)"),
     ("fit_accuracy_calibrated", "benchmarks/bench_fit_accuracy.py --keep TAKES --calibration",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_realistic", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic",
@@ -83,6 +87,7 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
 )
 
 ACCURACY = (("fit_accuracy", "Ideal devices, without a calibration take"),
+            ("fit_accuracy_take", "Ideal devices, the take solver (`fit --solver take`), on the first table's recordings"),
             ("fit_accuracy_realistic", "Realistic devices (every error drawn per take), without a calibration take"),
             ("fit_accuracy_realistic_no_trackers", "Realistic devices, the fit without trackers (what they buy)"),
             ("fit_accuracy_calibrated", "Ideal devices, with the studio day's calibration take"))  # fmt: skip

@@ -124,8 +124,8 @@ class TakeFitter(FitProblem):
             out.rounds = n_round
             fresh = (depth > 0) & (mult == 0)
             mult[fresh] = step ** (n_round - 1)  # frames pushed into contact join at this round's level
-            stalled = rows[(depth[rows] > np.maximum(cfg.collision_tolerance_m, STALL_SHARE * start)) & ~exact[rows]]
-            stalled = stalled[mult[stalled] > 0]
+            # frames the round started over a tolerance and left no shallower than STALL_SHARE of their depth
+            stalled = rows[over[rows] & (depth[rows] > np.maximum(cfg.collision_tolerance_m, STALL_SHARE * start)) & ~exact[rows]]
             if len(stalled):
                 exact[stalled] = True
                 out.stalled.append(label)
