@@ -61,6 +61,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_realistic", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
+    ("fit_accuracy_realistic_take", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --solver take",
+     "with TAKES the folder of `fit_accuracy_realistic`'s run (the same recordings)"),
     ("fit_accuracy_realistic_no_trackers", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --no-trackers",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("long_takes", "benchmarks/bench_long_takes.py --takes 60 600 --keep TAKES",
@@ -89,6 +91,7 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
 ACCURACY = (("fit_accuracy", "Ideal devices, without a calibration take"),
             ("fit_accuracy_take", "Ideal devices, the take solver (`fit --solver take`), on the first table's recordings"),
             ("fit_accuracy_realistic", "Realistic devices (every error drawn per take), without a calibration take"),
+            ("fit_accuracy_realistic_take", "Realistic devices, the take solver, on the table above's recordings"),
             ("fit_accuracy_realistic_no_trackers", "Realistic devices, the fit without trackers (what they buy)"),
             ("fit_accuracy_calibrated", "Ideal devices, with the studio day's calibration take"))  # fmt: skip
 

@@ -130,7 +130,8 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
     the two bodies. The suit measures no fingers: where a hand lies on the partner, the collision
     term opens its thumb and fingers (between anny's relaxed hand and flat) before it moves any
     bone. The take is fitted in segments of two windows on --workers processes at once;
-    consecutive segments are cross-faded over the frames they share. Writes bodies.npz,
+    consecutive segments are cross-faded over the frames they share (--solver take: the whole
+    take as one problem instead, in one process). Writes bodies.npz,
     shapes.json, frames.npz and report.html / report.png. Runs `sync` and `fuse` first if needed.
 
     \b

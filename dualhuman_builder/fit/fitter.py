@@ -8,7 +8,8 @@ where the bodies touch, the collision term (:mod:`~dualhuman_builder.fit.collisi
 windows are grouped into independent segments (:func:`~dualhuman_builder.fit.layout.layout`), fitted in
 this process or in worker processes (:mod:`~dualhuman_builder.fit.workers`) by the window solver
 (:class:`~dualhuman_builder.fit.segment.SegmentFitter`), cross-faded where they meet and mended where the
-blend passes through the partner (:mod:`~dualhuman_builder.fit.seams`). The design and its reasons:
+blend passes through the partner (:mod:`~dualhuman_builder.fit.seams`). With ``FitConfig.solver = "take"`` the whole take
+is one problem instead, with a per-frame collision schedule (:class:`~dualhuman_builder.fit.take.TakeFitter`). The design and its reasons:
 ``docs/design/fit-collision.md``; the settings: :class:`~dualhuman_builder.fit.config.FitConfig`.
 
 This module keeps the fit's public names importable from one place: :class:`FitConfig`,
@@ -59,7 +60,7 @@ def fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig = Fit
     """Fit one or two actors over the whole timeline (``fps`` frames per second; see the module
     docstring), with torch's CPU threads set to ``cfg.torch_threads`` meanwhile.
 
-    The take's segments are fitted on ``workers`` processes, this one included (None:
+    The window solver fits the take's segments on ``workers`` processes, this one included (None:
     :func:`fit_workers`; 1: all in this process); the others are started as ``python -m
     dualhuman_builder.fit.workers``. The answer does not depend on it. ``progress`` gets one line per
     window and collision pass (from any worker, one line at a time).

@@ -20,8 +20,11 @@ corrections are one set of tensors, and the schedule is per frame instead of per
    evaluation from then on, as in the window solver (docs/decisions/0016-held-contacts.md). At most
    ``cfg.collision_rounds`` rounds.
 
-No pass is undone and no frame restarted: a frame that a round leaves deeper simply weighs more in
-the next. The contact pass (:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
+From round 2 on, frames a round leaves stuck (over a tolerance and moved by less than 20 %:
+interlocked hands) restart from their neighbours, as in the window solver
+(docs/decisions/0017-undo-and-restart.md), the run restarted bounded by ``cfg.window`` frames. No pass
+is undone: a frame that a round leaves deeper simply weighs more in the next. The contact pass
+(:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
 
 Contacts are located ``CHUNK`` frames at a time, so memory grows with the frames in contact, not
 with whole meshes of the take. Depths are metres; rows are timeline frames ``0 .. T - 1``.
@@ -35,7 +38,8 @@ import numpy as np
 import torch
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
-from dualhuman_builder.fit.collision_rounds import SMOOTH_REACH, STALL_SHARE, dilate
+from dualhuman_builder.fit.collision_rounds import (MAX_RESTARTS, SMOOTH_REACH, STALL_SHARE, STUCK_SHARE, dilate,
+                                                   restart_from_neighbours, runs)
 from dualhuman_builder.fit.layout import SegmentAnswer
 from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR, FitProblem
 
@@ -105,6 +109,7 @@ class TakeFitter(FitProblem):
         hit = depth > 0
         mult[hit] = np.where((depth[hit] > cfg.collision_deep_m) & (cfg.collision_deep_m > 0), step, 1.0)
         exact = np.zeros(self.T, bool)  # frames located at every evaluation (a held round stalled there)
+        restarts = np.zeros(self.T, np.int64)  # per frame, the restarts from its neighbours so far
         for n_round in range(1, max(int(cfg.collision_rounds), 1) + 1):
             over = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
             if not over.any():
@@ -131,6 +136,34 @@ class TakeFitter(FitProblem):
                 out.stalled.append(label)
                 out.exact_frames += [int(f) for f in stalled]
             say(f"{label}: deepest {1000 * depth.max():.1f} mm after" + (f", {len(stalled)} stalled" if len(stalled) else ""))
+            if cfg.collision_restart and n_round >= 2:
+                self._restart_stuck(rows, start, over, depth, share, restarts, f"{label}: ", say)
+
+    def _restart_stuck(self, rows, start, over, depth, share, restarts, label: str, say) -> None:
+        """Restart the stuck frames of the round that moved ``rows`` (started at depths ``start``): frames it
+        started and left over a tolerance, moved by less than ``1 - STUCK_SHARE`` of their depth (interlocked
+        hands, whose two pushes oppose each other), each at most ``MAX_RESTARTS`` times. Each run of frames
+        over the tolerance that holds one starts the next round from the straight line between the frames
+        around it, as in the window solver, where a window bounds the run; a longer run than ``cfg.window``
+        restarts only its stuck frames, so that no more than a window's motion is replaced.
+        ``depth``/``share``/``restarts`` ``(T,)`` are updated in place."""
+        cfg = self.cfg
+        deep = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
+        stuck = np.zeros(self.T, bool)
+        stuck[rows] = over[rows] & deep[rows] & (depth[rows] > STUCK_SHARE * start)
+        stuck &= restarts < MAX_RESTARTS
+        if not stuck.any():
+            return
+        run_id = np.cumsum(np.r_[True, deep[1:] != deep[:-1]])
+        move = stuck.copy()
+        for a, b in runs(deep & np.isin(run_id, run_id[stuck])):
+            if b - a <= max(int(cfg.window), 1):
+                move[a:b] = True
+        if restart_from_neighbours(self.params, move):
+            restarts[move] += 1
+            at = np.flatnonzero(dilate(move, SMOOTH_REACH))
+            depth[at], share[at] = self._measure(at)
+            say(f"{label}{int(stuck.sum())} frames stuck, {int(move.sum())} restarted from their neighbours")
 
     def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray) -> bool:
         """One collision round: L-BFGS over the corrections of frames ``rows`` (the others held), on the
