@@ -49,11 +49,12 @@ STALL_SHARE = 0.75
 STUCK_SHARE = 0.8
 
 
-class _Diverged(Exception):
+class Diverged(Exception):
     """An L-BFGS line search stepped to non-finite parameters."""
 
 
-def _finite(tensors) -> bool:
+def all_finite(tensors) -> bool:
+    """Whether every tensor of ``tensors`` holds only finite values."""
     return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
@@ -268,9 +269,9 @@ class CollisionRounds:
         self.located = None  # the bodies move
         try:
             copt.step(self._closure(ps, copt))
-        except _Diverged:
+        except Diverged:
             pass
-        if not _finite(self.cparams):
+        if not all_finite(self.cparams):
             # the line search stepped to non-finite corrections: keep the best round's answer
             restore(self.cparams, self.best.params)
             self.out.diverged.append(ps.label)
@@ -337,8 +338,8 @@ class CollisionRounds:
         acts, cparams, csl, c0, P = problem.acts, self.cparams, self.csl, self.c0, PARAMS_PER_ACTOR
 
         def closure():
-            if not _finite(cparams):
-                raise _Diverged
+            if not all_finite(cparams):
+                raise Diverged
             copt.zero_grad()
             if ps.fixed is None:
                 e, rots = problem.energy(cparams, csl, self.cctxs, self.cafters)

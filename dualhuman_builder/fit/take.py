@@ -38,21 +38,13 @@ import numpy as np
 import torch
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
-from dualhuman_builder.fit.collision_rounds import (MAX_RESTARTS, SMOOTH_REACH, STALL_SHARE, STUCK_SHARE, dilate,
-                                                   restart_from_neighbours, runs)
+from dualhuman_builder.fit.collision_rounds import (MAX_RESTARTS, SMOOTH_REACH, STALL_SHARE, STUCK_SHARE, Diverged, all_finite,
+                                                   dilate, restart_from_neighbours, restore, runs)
 from dualhuman_builder.fit.layout import SegmentAnswer
 from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR, FitProblem
 
 #: frames posed at once where contacts are located (bounds the meshes held in memory)
 CHUNK = 256
-
-
-class _Diverged(Exception):
-    """An L-BFGS line search stepped to non-finite corrections."""
-
-
-def _finite(tensors) -> bool:
-    return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
 class TakeFitter(FitProblem):
@@ -184,8 +176,8 @@ class TakeFitter(FitProblem):
         opt = torch.optim.LBFGS(self.bones + self.hands, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
 
         def closure():
-            if not _finite(params):
-                raise _Diverged
+            if not all_finite(params):
+                raise Diverged
             opt.zero_grad()
             e, rots = self.energy(params, self.sl, self.none, self.none)
             if len(order):
@@ -213,12 +205,10 @@ class TakeFitter(FitProblem):
 
         try:
             opt.step(closure)
-        except _Diverged:
+        except Diverged:
             pass
-        if not _finite(params):
-            with torch.no_grad():
-                for p, s in zip(params, saved):
-                    p.copy_(s)
+        if not all_finite(params):
+            restore(params, saved)
             return False
         return True
 
