@@ -105,6 +105,22 @@ class FitProblem:
                                  self.cfg, self.fps, stack_contexts(afters))  # fmt: skip
         return e, rot.unbind(0)
 
+    def skeleton_pass(self, ps: list, psl: slice, ctxs: list, afters: list) -> None:
+        """L-BFGS on the skeleton energy (:meth:`energy`) of timeline frames ``psl`` over the bones'
+        corrections of ``ps`` (``delta``, ``dtransl``; no term there reads the fingers), ``cfg.iterations``
+        iterations, in place."""
+        P = PARAMS_PER_ACTOR
+        bones = [p for k in range(len(self.acts)) for p in ps[P * k : P * k + 2]]
+        opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=self.cfg.iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            e, _ = self.energy(ps, psl, ctxs, afters)
+            e.backward()
+            return e
+
+        opt.step(closure)
+
     def check(self, ps: list, psl: slice, rows=None) -> tuple:
         """The depths of timeline frames ``psl`` (only its rows ``rows``, sorted, when given) at the
         corrections ``ps``: ``penetration``'s dict (``max_depth_m``, ``share``, per row checked) and, when

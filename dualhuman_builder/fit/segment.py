@@ -43,7 +43,7 @@ class SegmentFitter(FitProblem):
             self.collide.clear_memo()  # each segment starts from the same state in any process
         for j_win, (wi, s0, s1) in enumerate(wins):
             win = run.window(j_win, s0, s1)
-            self._skeleton_pass(win)
+            self.skeleton_pass(win.params, win.sl, win.ctxs, win.afters)
             if self.collide is not None:
                 run.record_collision(win, *CollisionRounds(self, win, run.out, say).run())
                 if self.cfg.contact_reach_m > 0:
@@ -51,22 +51,6 @@ class SegmentFitter(FitProblem):
             run.store(win)
             say(f"window {wi + 1}/{n_windows}: frames {s0}-{s1 - 1}" if n_windows else f"seam: frames {s0}-{s1 - 1} fitted again")
         return run.finish()
-
-    def _skeleton_pass(self, win: Window) -> None:
-        """L-BFGS on the skeleton energy over the window's bones (``delta``, ``dtransl``; no term there reads
-        the fingers), ``cfg.iterations`` iterations, in place."""
-        P = PARAMS_PER_ACTOR
-        bones = [p for k in range(len(self.acts)) for p in win.params[P * k : P * k + 2]]
-        opt = torch.optim.LBFGS(bones, lr=1.0, max_iter=self.cfg.iterations, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            e, _ = self.energy(win.params, win.sl, win.ctxs, win.afters)
-            e.backward()
-            return e
-
-        opt.step(closure)
-
 
 class _SegmentRun:
     """One segment's state while its windows are fitted: the corrections of timeline frames ``a0 .. a1 -

@@ -9,7 +9,8 @@ corrections are one set of tensors, and the schedule is per frame instead of per
 1. **Skeleton pass**: L-BFGS on the skeleton energy (:mod:`~dualhuman_builder.fit.energy`) of every
    frame at once, ``cfg.iterations`` iterations. The smoothness terms couple neighbouring frames
    directly, so there are no contexts, cross-fades or seams.
-2. **Collision continuation**: each frame that touches its partner carries its own multiple of
+2. **Collision continuation**: a pass that moves the hand openings alone (they have no data term, so
+   they give way before any bone), then full rounds. Each frame that touches its partner carries its own multiple of
    ``cfg.collision_weight``: 1 where first found in contact (``collision_weight_step`` where deeper
    than ``collision_deep_m``), and one ``collision_weight_step`` more after every round that leaves
    it over a tolerance. A round locates the contacts of the frames still over a tolerance (held as
@@ -63,7 +64,7 @@ class TakeFitter(FitProblem):
         self.params = params
         self.bones = [p for k in range(len(self.acts)) for p in params[P * k : P * k + 2]]
         self.hands = [params[P * k + 2] for k in range(len(self.acts))] if cfg.hand_opening else []
-        self._skeleton_pass()
+        self.skeleton_pass(params, self.sl, self.none, self.none)
         say(f"take: skeleton pass over {T} frames")
         out = SegmentAnswer(0, [], [], [], np.zeros(T), np.zeros(T))
         if self.collide is not None:
@@ -79,19 +80,6 @@ class TakeFitter(FitProblem):
 
     # ---- the passes
 
-    def _skeleton_pass(self) -> None:
-        """L-BFGS on the take's skeleton energy over the bones' corrections (no term there reads the
-        fingers), ``cfg.iterations`` iterations, in place."""
-        opt = torch.optim.LBFGS(self.bones, lr=1.0, max_iter=self.cfg.iterations, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            e, _ = self.energy(self.params, self.sl, self.none, self.none)
-            e.backward()
-            return e
-
-        opt.step(closure)
-
     def _continuation(self, depth: np.ndarray, share: np.ndarray, out: SegmentAnswer, say) -> None:
         """The collision rounds (module docstring), updating ``depth``/``share`` ``(T,)`` in place and
         ``out``'s counts."""
@@ -102,27 +90,34 @@ class TakeFitter(FitProblem):
         mult[hit] = np.where((depth[hit] > cfg.collision_deep_m) & (cfg.collision_deep_m > 0), step, 1.0)
         exact = np.zeros(self.T, bool)  # frames located at every evaluation (a held round stalled there)
         restarts = np.zeros(self.T, np.int64)  # per frame, the restarts from its neighbours so far
-        for n_round in range(1, max(int(cfg.collision_rounds), 1) + 1):
+        # the hands first: their openings have no data term, so they give way before any bone the suit and
+        # trackers hold, and the full rounds start from hands that already fit (as in the window solver)
+        passes = (["hands"] if self.hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
+        n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
+        for i_pass, what in enumerate(passes):
+            n_round += what == "all"
             over = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
             if not over.any():
                 return
-            if n_round > 1:
+            if i_pass > 0:
                 mult[over] *= step
             moving = dilate(over, SMOOTH_REACH)
             rows = np.flatnonzero(moving)
             termed = np.flatnonzero(moving & (mult > 0))  # the moving frames with a collision term
             start = depth[rows].copy()
-            label = f"take: collision round {n_round}, {int(over.sum())} frames over the tolerance"
-            if not self._round(rows, termed, mult, exact):
+            label = (f"take: collision round {n_round}" if what == "all" else "take: the hands' collision pass") + \
+                f", {int(over.sum())} frames over the tolerance"  # fmt: skip
+            if not self._round(rows, termed, mult, exact, self.hands if what == "hands" else self.bones + self.hands):
                 out.diverged.append(label)
                 say(f"{label}: the line search stepped to non-finite corrections; kept the round before")
                 return
             depth[rows], share[rows] = self._measure(rows)
             out.rounds = n_round
             fresh = (depth > 0) & (mult == 0)
-            mult[fresh] = step ** (n_round - 1)  # frames pushed into contact join at this round's level
-            # frames the round started over a tolerance and left no shallower than STALL_SHARE of their depth
+            mult[fresh] = step**i_pass  # frames pushed into contact join at this pass's level
+            # frames a full round started over a tolerance and left no shallower than STALL_SHARE of their depth
             stalled = rows[over[rows] & (depth[rows] > np.maximum(cfg.collision_tolerance_m, STALL_SHARE * start)) & ~exact[rows]]
+            stalled = stalled if what == "all" else stalled[:0]
             if len(stalled):
                 exact[stalled] = True
                 out.stalled.append(label)
@@ -157,9 +152,9 @@ class TakeFitter(FitProblem):
             depth[at], share[at] = self._measure(at)
             say(f"{label}{int(stuck.sum())} frames stuck, {int(move.sum())} restarted from their neighbours")
 
-    def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray) -> bool:
-        """One collision round: L-BFGS over the corrections of frames ``rows`` (the others held), on the
-        skeleton energy plus ``collision_weight`` x ``mult`` times the collision term of frames
+    def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray, variables: list) -> bool:
+        """One collision pass: L-BFGS over ``variables`` (the openings alone in the hands' pass, else the
+        bones' corrections too) at frames ``rows`` (the others held), on the skeleton energy plus ``collision_weight`` x ``mult`` times the collision term of frames
         ``termed`` (held planes located here, or located at every evaluation where ``exact``). False
         (the corrections restored) when the line search stepped to non-finite values."""
         cfg, dev, collide, acts, P = self.cfg, self.dev, self.collide, self.acts, PARAMS_PER_ACTOR
@@ -173,7 +168,7 @@ class TakeFitter(FitProblem):
         frozen = np.ones(self.T, bool)
         frozen[rows] = False
         frozen_t = torch.as_tensor(np.flatnonzero(frozen), device=dev) if frozen.any() else None
-        opt = torch.optim.LBFGS(self.bones + self.hands, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
 
         def closure():
             if not all_finite(params):

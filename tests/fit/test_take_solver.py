@@ -46,9 +46,9 @@ def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_
     rounds = []
     real = TakeFitter._round
 
-    def spy(self, rows, termed, mult, exact):
+    def spy(self, rows, termed, mult, exact, variables):
         rounds.append(rows.copy())
-        return real(self, rows, termed, mult, exact)
+        return real(self, rows, termed, mult, exact, variables)
 
     TakeFitter._round = spy
     try:
@@ -79,9 +79,9 @@ def test_a_frame_left_over_the_tolerance_weighs_one_step_more_in_the_next_round(
     seen = []
     real = TakeFitter._round
 
-    def spy(self, rows, termed, mult, exact):
+    def spy(self, rows, termed, mult, exact, variables):
         seen.append((rows.copy(), mult.copy()))
-        return real(self, rows, termed, mult, exact)
+        return real(self, rows, termed, mult, exact, variables)
 
     monkeypatch.setattr(TakeFitter, "_round", spy)
     # a weak term, so that the first round leaves frames over the tolerance
@@ -121,3 +121,22 @@ def test_a_round_that_steps_to_non_finite_corrections_is_undone(model, monkeypat
 def test_an_unknown_solver_is_refused(model):
     with pytest.raises(FitError, match="unknown fit solver 'segments'"):
         fit_actors(model, _step_in(4), FPS, FitConfig(solver="segments"))
+
+
+def test_the_hands_pass_comes_first_and_moves_the_openings_alone(model, monkeypatch):
+    """With hand openings on, the first collision pass optimises only the openings (they have no data term,
+    so they give way before any bone the suit holds); the full rounds after it move the bones too."""
+    T = 20
+    seen = []
+    real = TakeFitter._round
+
+    def spy(self, rows, termed, mult, exact, variables):
+        seen.append([tuple(v.shape) for v in variables])
+        return real(self, rows, termed, mult, exact, variables)
+
+    monkeypatch.setattr(TakeFitter, "_round", spy)
+    res = fit_actors(model, _step_in(T), FPS, dataclasses.replace(CFG, hand_opening=True))
+    assert len(seen) >= 2
+    assert seen[0] == [(T, 4), (T, 4)]  # both actors' openings, nothing else
+    assert (T, 23, 3) in seen[1] and (T, 3) in seen[1] and (T, 4) in seen[1]
+    assert res.summary["collision_rounds_used"] == len(seen) - 1  # the hands' pass is not a full round
