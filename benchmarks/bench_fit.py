@@ -305,7 +305,7 @@ def main():
                        ["peak RSS MB, largest worker process", "peak_rss_mb.largest_worker"]])]  # fmt: skip
     goals = [Goal(f"pairs_per_s.{m}", ">=", GOAL_PAIRS_PER_S, "frame pairs/s", label=f"fit {names[m]}")
              for m in ("held", "off") if m in first]  # fmt: skip
-    name = "fit_cuda" if model.device.type == "cuda" else "fit"
+    name = args.out.stem if args.out else ("fit_cuda" if model.device.type == "cuda" else "fit")
     path = write_results(name, figures, params={k: v for k, v in vars(args).items() if k != "out"}, goals=goals,
                          tables=tables, out=args.out,
                          notes="Sync and fuse excluded: the fit stage's own time. Seam jitter: the RMS "
