@@ -96,7 +96,7 @@ class TakeFitter(FitProblem):
         n_round = 0  # the full rounds count from 1 (the hands' pass: 0)
         for i_pass, what in enumerate(passes):
             n_round += what == "all"
-            over = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
+            over = self._over(depth, share)
             if not over.any():
                 return
             if i_pass > 0:
@@ -126,6 +126,11 @@ class TakeFitter(FitProblem):
             if cfg.collision_restart and n_round >= 2:
                 self._restart_stuck(rows, start, over, depth, share, restarts, f"{label}: ", say)
 
+    def _over(self, depth: np.ndarray, share: np.ndarray) -> np.ndarray:
+        """Frames over a tolerance: deepest vertex over ``collision_tolerance_m`` or penetrating share over
+        ``collision_share_tolerance``."""
+        return (depth > self.cfg.collision_tolerance_m) | (share > self.cfg.collision_share_tolerance)
+
     def _restart_stuck(self, rows, start, over, depth, share, restarts, label: str, say) -> None:
         """Restart the stuck frames of the round that moved ``rows`` (started at depths ``start``): frames it
         started and left over a tolerance, moved by less than ``1 - STUCK_SHARE`` of their depth (interlocked
@@ -135,7 +140,7 @@ class TakeFitter(FitProblem):
         restarts only its stuck frames, so that no more than a window's motion is replaced.
         ``depth``/``share``/``restarts`` ``(T,)`` are updated in place."""
         cfg = self.cfg
-        deep = (depth > cfg.collision_tolerance_m) | (share > cfg.collision_share_tolerance)
+        deep = self._over(depth, share)
         stuck = np.zeros(self.T, bool)
         stuck[rows] = over[rows] & deep[rows] & (depth[rows] > STUCK_SHARE * start)
         stuck &= restarts < MAX_RESTARTS
@@ -154,14 +159,15 @@ class TakeFitter(FitProblem):
 
     def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray, variables: list) -> bool:
         """One collision pass: L-BFGS over ``variables`` (the openings alone in the hands' pass, else the
-        bones' corrections too) at frames ``rows`` (the others held), on the skeleton energy plus ``collision_weight`` x ``mult`` times the collision term of frames
-        ``termed`` (held planes located here, or located at every evaluation where ``exact``). False
-        (the corrections restored) when the line search stepped to non-finite values."""
+        bones' corrections too) at frames ``rows`` (the others held), on the skeleton energy plus
+        ``collision_weight`` x ``mult`` times the collision term of frames ``termed`` (held planes located
+        here, or located at every evaluation where ``exact``). False (the corrections restored) when the
+        line search stepped to non-finite values."""
         cfg, dev, collide, acts, P = self.cfg, self.dev, self.collide, self.acts, PARAMS_PER_ACTOR
         params = self.params
         saved = [p.detach().clone() for p in params]
         held_rows, exact_rows = termed[~exact[termed]], termed[exact[termed]]
-        held = self._locate(held_rows)  # [(first index into termed-order rows, rows, Linearised)]
+        held = self._locate(held_rows)  # per chunk (first row of it in `order`, its length, its contacts)
         order = np.concatenate([held_rows, exact_rows])  # the rows posed with the gradient, in this order
         order_t = torch.as_tensor(order, device=dev)
         w = torch.as_tensor(cfg.collision_weight * mult[order], dtype=params[0].dtype, device=dev)

@@ -36,7 +36,7 @@ def _step_in(T: int) -> list:
 CFG = FitConfig(solver="take", iterations=4, collision_iterations=4, collision_rounds=3, hand_opening=False)
 
 
-def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model):
+def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model, monkeypatch):
     """The collision rounds move the frames over a tolerance and the two on either side of them; every
     other frame keeps the skeleton pass's answer bit for bit (the fit without the collision term), and
     the deepest penetration falls."""
@@ -50,11 +50,8 @@ def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_
         rounds.append(rows.copy())
         return real(self, rows, termed, mult, exact, variables)
 
-    TakeFitter._round = spy
-    try:
-        on = fit_actors(model, inputs, FPS, CFG)
-    finally:
-        TakeFitter._round = real
+    monkeypatch.setattr(TakeFitter, "_round", spy)
+    on = fit_actors(model, inputs, FPS, CFG)
     s = on.summary
     assert s["segments"] == 1 and s["processes"] == 1 and s["seams_fitted_again"] == []
     hit = np.flatnonzero(on.frames["penetration depth (mm)/without collision term"] > 0)

@@ -5,7 +5,6 @@ the stage helpers and the CLI. The realistic errors' statistics are checked in
 
 from __future__ import annotations
 
-import hashlib
 import json
 import socket
 import sys
@@ -26,6 +25,7 @@ from dualhuman_builder.sim.suit import SuitErrorModel, segment_loads
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from test_sim_devices import greeting_sequence  # noqa: E402
+from stream_digest import stream_digest  # noqa: E402
 
 SUIT = ("sample_counter", "time_code_ms", "device_time_ns", "host_time_ns", "orientations", "positions", "sensor_acc",
         "sensor_gyro", "sensor_mag")  # fmt: skip
@@ -36,21 +36,8 @@ IDEAL_DIGESTS = {"suit0": "e4bb85ea0e6d2998", "suit1": "5936512cd6ff6e61", "trac
                  "trackers1": "d098349004ef6f9b", "mti-xbus": "b9e6f35e827a9873", "mti-can": "54ef0be161af0e1a"}  # fmt: skip
 
 
-def machine_stable(name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` without the last bits that differ between CPUs (numpy's SIMD sin/cos/exp differ by a few ULP
-    with and without AVX-512): floats rounded to 1e-6, ``*_ns`` times to microseconds. Any change to
-    what a simulator does moves them by far more."""
-    if np.issubdtype(a.dtype, np.floating):
-        return np.round(a.astype(np.float64), 6) + 0.0
-    return a // 1000 if name.endswith("_ns") else a
-
-
 def digest(obj, names) -> str:
-    h = hashlib.sha256()
-    for name in names:
-        a = np.ascontiguousarray(getattr(obj, name))
-        h.update(name.encode()), h.update(str(a.dtype).encode()), h.update(machine_stable(name, a).tobytes())
-    return h.hexdigest()[:16]
+    return stream_digest(obj, names)
 
 
 def studio_digests(studio) -> dict:

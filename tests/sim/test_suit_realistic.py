@@ -8,7 +8,6 @@ suit samples at 60 Hz to keep the tests fast (the error processes do not depend 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import sys
 from pathlib import Path
@@ -24,6 +23,7 @@ from dualhuman_builder.sim.suit import SuitErrorModel, simulate_suit
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from test_sim_devices import angle_between, make_track, only  # noqa: E402
+from stream_digest import stream_digest  # noqa: E402
 
 RATE = 60.0
 PAIRS = [(c, MVN_SEGMENTS.index(MVN_PARENTS[n])) for c, n in enumerate(MVN_SEGMENTS) if MVN_PARENTS[n] is not None]
@@ -39,22 +39,9 @@ def realistic(seed: int, **changes) -> SuitErrorModel:
     return dataclasses.replace(SuitErrorModel.realistic(np.random.default_rng(seed)), **changes)
 
 
-def machine_stable(name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` without the last bits that differ between CPUs (numpy's SIMD sin/cos/exp differ by a few ULP
-    with and without AVX-512): floats rounded to 1e-6, ``*_ns`` times to microseconds. Any change to
-    what a simulator does moves them by far more."""
-    if np.issubdtype(a.dtype, np.floating):
-        return np.round(a.astype(np.float64), 6) + 0.0
-    return a // 1000 if name.endswith("_ns") else a
-
-
 def digest(stream) -> str:
-    h = hashlib.sha256()
-    for name in ("sample_counter", "time_code_ms", "device_time_ns", "host_time_ns", "orientations", "positions",
-                 "sensor_acc", "sensor_gyro", "sensor_mag"):  # fmt: skip
-        a = np.ascontiguousarray(getattr(stream, name))
-        h.update(name.encode()), h.update(str(a.dtype).encode()), h.update(machine_stable(name, a).tobytes())
-    return h.hexdigest()[:16]
+    return stream_digest(stream, ("sample_counter", "time_code_ms", "device_time_ns", "host_time_ns", "orientations",
+                                  "positions", "sensor_acc", "sensor_gyro", "sensor_mag"))
 
 
 def test_default_errors_give_the_streams_they_always_gave():

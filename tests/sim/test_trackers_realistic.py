@@ -6,7 +6,6 @@ bit-identical to the simulator without these errors."""
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import sys
 from pathlib import Path
@@ -23,6 +22,7 @@ from dualhuman_builder.tracks import SkeletonTrack
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from test_sim_devices import analytic_pose, make_track  # noqa: E402
+from stream_digest import stream_digest  # noqa: E402
 
 #: Every error switched off: the terms under test are switched on one by one.
 QUIET = TrackerErrorModel(position_noise_m=0.0, orientation_noise_deg=0.0, velocity_noise_m_s=0.0,
@@ -38,21 +38,8 @@ BEFORE = {"default": "c24bd1532c57785e", "ideal": "2b633a25cc7593a0", "lossy": "
           "clock": "4799d2acc57940ae"}  # fmt: skip
 
 
-def machine_stable(name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` without the last bits that differ between CPUs (numpy's SIMD sin/cos/exp differ by a few ULP
-    with and without AVX-512): floats rounded to 1e-6, ``*_ns`` times to microseconds. Any change to
-    what a simulator does moves them by far more."""
-    if np.issubdtype(a.dtype, np.floating):
-        return np.round(a.astype(np.float64), 6) + 0.0
-    return a // 1000 if name.endswith("_ns") else a
-
-
 def digest(stream) -> str:
-    h = hashlib.sha256()
-    for name in NAMES:
-        a = np.ascontiguousarray(getattr(stream, name))
-        h.update(name.encode()), h.update(str(a.dtype).encode()), h.update(machine_stable(name, a).tobytes())
-    return h.hexdigest()[:16]
+    return stream_digest(stream, NAMES)
 
 
 def track_from(t: np.ndarray, shift: np.ndarray, actor: str) -> SkeletonTrack:
