@@ -34,6 +34,10 @@ class FitConfig:
     collision: bool = True
     #: L-BFGS iterations of each collision pass
     collision_iterations: int = 12
+    #: L-BFGS iterations of each collision pass of the take solver (``solver = "take"``): one run moves
+    #: every frame over a tolerance at once, and the frames share its curvature pairs and step length, so
+    #: it needs more than a window's run (chosen on the tuning seeds, docs/decisions/0029-take-solver.md)
+    take_iterations: int = 36
     #: full collision rounds per window at most, while a frame is over a tolerance below. Each pass is
     #: weighted ``collision_weight_step`` times the one before: the hands' pass at ``collision_weight``,
     #: round 1 at x4, round 2 at x16 ... (docs/decisions/0015-collision-weight-schedule.md)

@@ -155,7 +155,7 @@ def run_fit(ws, take: str, config: FitConfig = FitConfig(), force: bool = False,
 
     params = {k: getattr(config, k) for k in config.__dataclass_fields__}
     if params["solver"] == "windows":  # the solver a fit had before it could be chosen: such fits stay up to date
-        del params["solver"]
+        del params["solver"], params["take_iterations"]
     return ws.run_stage(FIT, compute, take=take, params=params, depends_on=[("fuse", None)],
                         version=FIT_VERSION, force=force)  # fmt: skip
 

@@ -16,16 +16,19 @@ corrections are one set of tensors, and the schedule is per frame instead of per
    it over a tolerance. A round locates the contacts of the frames still over a tolerance (held as
    planes through the round, :meth:`~dualhuman_builder.geometry.collision.CollisionTerm.linearise`)
    and moves them and the ``SMOOTH_REACH`` frames on either side with one L-BFGS run of
-   ``cfg.collision_iterations`` iterations; settled frames keep their term and hold still. A frame a
+   ``cfg.take_iterations`` iterations (more than a window's ``collision_iterations``: the frames share
+   the run's curvature pairs and step length); settled frames keep their term and hold still. A frame
+   the round leaves over ``collision_tolerance_m`` and deeper than its best answer so far goes back to
+   that answer (the window solver's undo of a round, per frame). A frame a
    held round left stalled (no shallower than ``STALL_SHARE`` of its depth) is located at every
    evaluation from then on, as in the window solver (docs/decisions/0016-held-contacts.md). At most
    ``cfg.collision_rounds`` rounds.
 
 From round 2 on, frames a round leaves stuck (over a tolerance and moved by less than 20 %:
 interlocked hands) restart from their neighbours, as in the window solver
-(docs/decisions/0017-undo-and-restart.md), the run restarted bounded by ``cfg.window`` frames. No pass
-is undone: a frame that a round leaves deeper simply weighs more in the next. The contact pass
-(:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
+(docs/decisions/0017-undo-and-restart.md), the run restarted bounded by ``cfg.window`` frames; a
+restart the next round does not make pay is undone there, per frame, like any deeper answer. The
+contact pass (:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
 
 Contacts are located ``CHUNK`` frames at a time, so memory grows with the frames in contact, not
 with whole meshes of the take. Depths are metres; rows are timeline frames ``0 .. T - 1``.
@@ -88,8 +91,11 @@ class TakeFitter(FitProblem):
         mult = np.zeros(self.T)  # per frame, the multiple of collision_weight its term carries (0: none yet)
         hit = depth > 0
         mult[hit] = np.where((depth[hit] > cfg.collision_deep_m) & (cfg.collision_deep_m > 0), step, 1.0)
-        exact = np.zeros(self.T, bool)  # frames located at every evaluation (a held round stalled there)
+        exact = np.full(self.T, not cfg.collision_hold_contacts)  # frames located at every evaluation
         restarts = np.zeros(self.T, np.int64)  # per frame, the restarts from its neighbours so far
+        # per frame, its best answer so far: the corrections, depth and share (a round that leaves a frame
+        # deeper goes back to it there)
+        best = ([p.detach().clone() for p in self.params], depth.copy(), share.copy())
         # the hands first: their openings have no data term, so they give way before any bone the suit and
         # trackers hold, and the full rounds start from hands that already fit (as in the window solver)
         passes = (["hands"] if self.hands else []) + ["all"] * max(int(cfg.collision_rounds), 1)
@@ -112,7 +118,10 @@ class TakeFitter(FitProblem):
                 say(f"{label}: the line search stepped to non-finite corrections; kept the round before")
                 return
             depth[rows], share[rows] = self._measure(rows)
-            out.rounds = n_round
+            undone = self._keep_best(rows, depth, share, best)
+            if len(undone):
+                out.worsened.append(f"{label}: {len(undone)} frames left deeper, undone")
+            out.rounds = max(out.rounds, n_round)
             fresh = (depth > 0) & (mult == 0)
             mult[fresh] = step**i_pass  # frames pushed into contact join at this pass's level
             # frames a full round started over a tolerance and left no shallower than STALL_SHARE of their depth
@@ -122,9 +131,33 @@ class TakeFitter(FitProblem):
                 exact[stalled] = True
                 out.stalled.append(label)
                 out.exact_frames += [int(f) for f in stalled]
-            say(f"{label}: deepest {1000 * depth.max():.1f} mm after" + (f", {len(stalled)} stalled" if len(stalled) else ""))
-            if cfg.collision_restart and n_round >= 2:
+            say(f"{label}: deepest {1000 * depth.max():.1f} mm after" + (f", {len(stalled)} stalled" if len(stalled) else "")
+                + (f", {len(undone)} frames undone" if len(undone) else ""))
+            if cfg.collision_restart and n_round >= 2 and i_pass < len(passes) - 1:  # a restart needs a round after it
                 self._restart_stuck(rows, start, over, depth, share, restarts, f"{label}: ", say)
+
+    def _copy_rows(self, rows: np.ndarray, src: list, dst: list) -> None:
+        """Copy frames ``rows`` of the tensors ``src`` into ``dst`` (in place, no gradient)."""
+        if len(rows):
+            i = torch.as_tensor(rows, device=self.dev)
+            with torch.no_grad():
+                for p, q in zip(src, dst):
+                    q.index_copy_(0, i, p.detach().index_select(0, i))
+
+    def _keep_best(self, rows, depth, share, best) -> np.ndarray:
+        """Per frame of ``rows`` (moved by a round; restarted frames are judged by the round after), keep the answer if it is within
+        ``collision_tolerance_m`` or no deeper than the frame's best so far, else go back to the best
+        (L-BFGS stepped into a worse basin there, or a restart did not pay): the window solver's undo of a
+        round, per frame. Each frame's depth reads only its own corrections, so the best depths come back
+        with it. ``best`` ``(corrections, depth (T,), share (T,))`` and ``depth``/``share`` are updated in
+        place; returns the frames sent back."""
+        keep = (depth[rows] <= self.cfg.collision_tolerance_m) | (depth[rows] <= best[1][rows])
+        back, ahead = rows[~keep], rows[keep]
+        self._copy_rows(back, best[0], self.params)
+        self._copy_rows(ahead, self.params, best[0])
+        depth[back], share[back] = best[1][back], best[2][back]
+        best[1][ahead], best[2][ahead] = depth[ahead], share[ahead]
+        return back
 
     def _over(self, depth: np.ndarray, share: np.ndarray) -> np.ndarray:
         """Frames over a tolerance: deepest vertex over ``collision_tolerance_m`` or penetrating share over
@@ -174,7 +207,7 @@ class TakeFitter(FitProblem):
         frozen = np.ones(self.T, bool)
         frozen[rows] = False
         frozen_t = torch.as_tensor(np.flatnonzero(frozen), device=dev) if frozen.any() else None
-        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.collision_iterations, line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.take_iterations, line_search_fn="strong_wolfe")
 
         def closure():
             if not all_finite(params):

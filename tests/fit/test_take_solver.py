@@ -7,10 +7,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 
 from dualhuman_builder.body.model import get_body_model
 from dualhuman_builder.fit.fitter import ActorInput, FitConfig, FitError, fit_actors
 from dualhuman_builder.fit.collision_rounds import SMOOTH_REACH, dilate
+from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR
 from dualhuman_builder.fit.take import TakeFitter
 
 FPS = 15.0
@@ -33,7 +35,7 @@ def _step_in(T: int) -> list:
             for name, dx in (("a", np.zeros(T)), ("b", x))]  # fmt: skip
 
 
-CFG = FitConfig(solver="take", iterations=4, collision_iterations=4, collision_rounds=3, hand_opening=False)
+CFG = FitConfig(solver="take", iterations=4, take_iterations=4, collision_rounds=3, hand_opening=False)
 
 
 def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model, monkeypatch):
@@ -82,7 +84,7 @@ def test_a_frame_left_over_the_tolerance_weighs_one_step_more_in_the_next_round(
 
     monkeypatch.setattr(TakeFitter, "_round", spy)
     # a weak term, so that the first round leaves frames over the tolerance
-    cfg = dataclasses.replace(CFG, collision_rounds=3, collision_iterations=2, collision_deep_m=0.0, collision_weight=1e3)
+    cfg = dataclasses.replace(CFG, collision_rounds=3, take_iterations=2, collision_deep_m=0.0, collision_weight=1e3)
     fit_actors(model, inputs, FPS, cfg)
     assert len(seen) >= 2
     (rows1, m1), (rows2, m2) = seen[0], seen[1]
@@ -96,6 +98,39 @@ def test_a_frame_left_over_the_tolerance_weighs_one_step_more_in_the_next_round(
     # from its level) and the SMOOTH_REACH frames on either side; the settled ones hold still
     over = raised | ((m1 == 0) & (m2 == step))
     assert np.array_equal(rows2, np.flatnonzero(dilate(over, SMOOTH_REACH)))
+
+
+def test_a_frame_a_round_leaves_deeper_goes_back_to_its_best_answer(model, monkeypatch):
+    """Where a round leaves a frame over the tolerance and deeper than its best answer so far (here: the
+    round's answer at the middle frame pushed 10 cm into the partner), that frame goes back to its best
+    corrections bit for bit, and the round is reported; the round's other frames keep their answers."""
+    T, f = 12, 6
+    inputs = _step_in(T)
+    seen = []
+    real = TakeFitter._round
+
+    def spy(self, rows, termed, mult, exact, variables):
+        seen.append(([p.detach().clone() for p in self.params], self._measure(np.arange(T))[0]))
+        ok = real(self, rows, termed, mult, exact, variables)
+        if len(seen) == 2:  # the second round's answer: actor b's middle frame pushed into actor a
+            assert f in rows
+            self.after2 = [p.detach().clone() for p in self.params]
+            with torch.no_grad():
+                self.params[PARAMS_PER_ACTOR + 1][f, 0] -= 0.1
+        return ok
+
+    monkeypatch.setattr(TakeFitter, "_round", spy)
+    cfg = dataclasses.replace(CFG, collision_rounds=3, take_iterations=2, collision_deep_m=0.0, collision_weight=1e3,
+                              collision_restart=False)  # fmt: skip
+    res = fit_actors(model, inputs, FPS, cfg)
+    assert len(seen) == 3
+    (p2, d2), (p3, d3) = seen[1], seen[2]
+    assert d2[f] > cfg.collision_tolerance_m and d3[f] == d2[f]
+    for a, b in zip(p2, p3):
+        assert torch.equal(a[f], b[f])
+    assert any(w.startswith("take: collision round 2, ") for w in res.summary["collision_worsened"])
+    moved_on = [not torch.equal(a[g], b[g]) for a, b in zip(p2, p3) for g in range(T) if g != f]
+    assert any(moved_on)
 
 
 def test_a_round_that_steps_to_non_finite_corrections_is_undone(model, monkeypatch):
