@@ -107,9 +107,9 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
 @click.option("--solver", type=click.Choice(["windows", "take"]), default="windows", show_default=True,
               help="windows: windows of --window frames one after another, segments on --workers processes (the "
-                   "faster on long takes on a CPU, and the more accurate where the bodies start deep in each "
-                   "other); take: the whole take as one problem in one process, with a per-frame collision "
-                   "schedule (--window and --workers do not apply).")
+                   "faster on long takes on a CPU); take: the whole take as one problem in one process, with a "
+                   "per-frame collision schedule, as accurate or better on the accuracy tables (--window and "
+                   "--workers do not apply).")
 @click.option("--device", default="cpu", show_default=True,
               help="torch device for the fit, e.g. cuda. Prefer the CPU even where a GPU is: the fit's many small "
                    "tensor operations gain little on a GPU, and a GPU fit runs in one process (no --workers).")
