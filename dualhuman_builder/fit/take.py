@@ -145,12 +145,12 @@ class TakeFitter(FitProblem):
                     q.index_copy_(0, i, p.detach().index_select(0, i))
 
     def _keep_best(self, rows, depth, share, best) -> np.ndarray:
-        """Per frame of ``rows`` (moved by a round; restarted frames are judged by the round after), keep the answer if it is within
-        ``collision_tolerance_m`` or no deeper than the frame's best so far, else go back to the best
-        (L-BFGS stepped into a worse basin there, or a restart did not pay): the window solver's undo of a
-        round, per frame. Each frame's depth reads only its own corrections, so the best depths come back
-        with it. ``best`` ``(corrections, depth (T,), share (T,))`` and ``depth``/``share`` are updated in
-        place; returns the frames sent back."""
+        """Per frame of ``rows`` (moved by a round; restarted frames are judged by the round after), keep
+        the answer if it is within ``collision_tolerance_m`` or no deeper than the frame's best so far,
+        else go back to the best (L-BFGS stepped into a worse basin there, or a restart did not pay): the
+        window solver's undo of a round, per frame. Each frame's depth reads only its own corrections, so
+        the best depths come back with it. ``best`` ``(corrections, depth (T,), share (T,))`` and
+        ``depth``/``share`` are updated in place; returns the frames sent back."""
         keep = (depth[rows] <= self.cfg.collision_tolerance_m) | (depth[rows] <= best[1][rows])
         back, ahead = rows[~keep], rows[keep]
         self._copy_rows(back, best[0], self.params)
