@@ -108,7 +108,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
 @click.option("--solver", type=click.Choice(["windows", "take"]), default="windows", show_default=True,
               help="windows: windows of --window frames one after another, segments on --workers processes (the "
                    "faster on long takes on a CPU); take: the whole take as one problem in one process, with a "
-                   "per-frame collision schedule, as accurate or better on the accuracy tables (--window and "
+                   "per-frame collision schedule, about as accurate on the accuracy tables (--window and "
                    "--workers do not apply).")
 @click.option("--device", default="cpu", show_default=True,
               help="torch device for the fit, e.g. cuda. Prefer the CPU even where a GPU is: the fit's many small "

@@ -114,7 +114,6 @@ def test_a_frame_a_round_leaves_deeper_goes_back_to_its_best_answer(model, monke
         ok = real(self, rows, termed, mult, exact, variables)
         if len(seen) == 2:  # the second round's answer: actor b's middle frame pushed into actor a
             assert f in rows
-            self.after2 = [p.detach().clone() for p in self.params]
             with torch.no_grad():
                 self.params[PARAMS_PER_ACTOR + 1][f, 0] -= 0.1
         return ok
