@@ -295,6 +295,7 @@ def test_a_calibration_takes_mounts_carry_over_to_later_takes(recorded, model, t
     from dualhuman_builder.capture.log.reader import read_columns
     from dualhuman_builder.evaluation.fit import mount_errors, record_simulated_take
     from dualhuman_builder.sim.studio import simulate_studio
+    from dualhuman_builder.sync.lag import LagEstimate, with_carried_lag
     from dualhuman_builder.sync.timeline import SyncResult
     from dualhuman_builder.workspace import Workspace
 
@@ -335,7 +336,10 @@ def test_a_calibration_takes_mounts_carry_over_to_later_takes(recorded, model, t
     lag = report["lags"][key]
     assert lag["carried_from"] == "CAL" and lag["latency_changed"] is False, lag
     assert lag["carried_lag_ms"] == cal.report["lags"][key]["lag_ms"]
-    assert min(lag["own_lag_ms"], lag["carried_lag_ms"]) < lag["lag_ms"] < max(lag["own_lag_ms"], lag["carried_lag_ms"])
+    # their weighted mean, from the report's own figures (rounded to 0.1 us, and the two can lie that close)
+    own_est, cal_est = (LagEstimate(lag[f"{w}_lag_ms"] * 1e6, lag[f"{w}_std_ms"] * 1e6, 1.0, 1) for w in ("own", "carried"))
+    assert with_carried_lag(own_est, cal_est)[0].lag_ns * 1e-6 == pytest.approx(lag["lag_ms"], abs=1e-3), lag
+    assert min(lag["own_lag_ms"], lag["carried_lag_ms"]) <= lag["lag_ms"] <= max(lag["own_lag_ms"], lag["carried_lag_ms"])
     clock = report["clocks"][key]
     assert abs(clock["offset_s"] - studio.trackers[0].clock.offset_s) < 1e-3, clock
     # a calibration 10 ms away: the latency changed; the take keeps its own lag, with a warning
