@@ -31,7 +31,10 @@ restart the next round does not make pay is undone there, per frame, like any de
 contact pass (:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
 
 Contacts are located ``CHUNK`` frames at a time, so memory grows with the frames in contact, not
-with whole meshes of the take. Depths are metres; rows are timeline frames ``0 .. T - 1``.
+with whole meshes of the take. With contacts held, the query that measures the depths after a round
+also locates the contacts, and the next round holds them for the frames that have not moved since
+(the window solver's ``check`` does the same): the two queries of the same poses become one.
+Depths are metres; rows are timeline frames ``0 .. T - 1``.
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ class TakeFitter(FitProblem):
         T, P, dev, cfg = self.T, PARAMS_PER_ACTOR, self.dev, self.cfg
         S = len(MVN_SEGMENTS)
         self.sl, self.none = slice(0, T), [None] * len(self.acts)
+        self.located: dict[int, tuple] = {}  # frame -> (Linearised, its batch row): held contacts still valid
         params = []
         for _ in self.acts:
             params += [torch.zeros(T, S, 3, device=dev, requires_grad=True), torch.zeros(T, 3, device=dev, requires_grad=True),
@@ -154,6 +158,7 @@ class TakeFitter(FitProblem):
         keep = (depth[rows] <= self.cfg.collision_tolerance_m) | (depth[rows] <= best[1][rows])
         back, ahead = rows[~keep], rows[keep]
         self._copy_rows(back, best[0], self.params)
+        self._forget(back)
         self._copy_rows(ahead, self.params, best[0])
         depth[back], share[back] = best[1][back], best[2][back]
         best[1][ahead], best[2][ahead] = depth[ahead], share[ahead]
@@ -200,7 +205,7 @@ class TakeFitter(FitProblem):
         params = self.params
         saved = [p.detach().clone() for p in params]
         held_rows, exact_rows = termed[~exact[termed]], termed[exact[termed]]
-        held = self._locate(held_rows)  # per chunk (first row of it in `order`, its length, its contacts)
+        held_rows, held = self._locate(held_rows)  # per chunk (first row of it in `order`, its length, its contacts)
         order = np.concatenate([held_rows, exact_rows])  # the rows posed with the gradient, in this order
         order_t = torch.as_tensor(order, device=dev)
         w = torch.as_tensor(cfg.collision_weight * mult[order], dtype=params[0].dtype, device=dev)
@@ -248,25 +253,55 @@ class TakeFitter(FitProblem):
 
     # ---- depths and contacts, CHUNK frames at a time
 
-    def _locate(self, rows: np.ndarray) -> list:
-        """The contacts of frames ``rows`` (sorted) held as planes, per chunk ``(first, n, lin)``: the
-        chunk's rows are ``rows[first : first + n]``, ``lin`` their
-        :class:`~dualhuman_builder.geometry.collision.Linearised`."""
-        out = []
-        for c0 in range(0, len(rows), CHUNK):
-            sub = rows[c0 : c0 + CHUNK]
-            with torch.no_grad():
-                vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(sub, device=self.dev))]
-                lin = self.collide.linearise(vs[0], vs[1], keys=sub, margin_m=self.cfg.collision_margin_m)
-            out.append((c0, len(sub), lin))
-        return out
+    def _locate(self, rows: np.ndarray) -> tuple[np.ndarray, list]:
+        """The contacts of frames ``rows`` held as planes: ``(order, held)``, ``order`` the same frames
+        regrouped, ``held`` per group ``(first, n, lin)`` whose frames are ``order[first : first + n]``
+        and ``lin`` their :class:`~dualhuman_builder.geometry.collision.Linearised`. Frames whose
+        contacts :meth:`_measure` located at their current corrections reuse them; the rest are located
+        here."""
+        order, held, fresh, groups = [], [], [], {}
+        for f in rows.tolist():
+            if f in self.located:
+                lin, i = self.located[f]
+                groups.setdefault(id(lin), (lin, [], []))
+                groups[id(lin)][1].append(f)
+                groups[id(lin)][2].append(i)
+            else:
+                fresh.append(f)
+        for lin, fs, idx in groups.values():
+            held.append((len(order), len(fs), lin if len(idx) == lin.B and idx == list(range(lin.B)) else lin.subset(idx)))
+            order += fs
+        fresh = np.asarray(fresh, np.int64)
+        for c0 in range(0, len(fresh), CHUNK):
+            sub = fresh[c0 : c0 + CHUNK]
+            held.append((len(order), len(sub), self._linearise(sub)))
+            order += sub.tolist()
+        return np.asarray(order, np.int64), held
+
+    def _linearise(self, rows: np.ndarray):
+        """The contacts of frames ``rows`` (at most ``CHUNK``) at the current corrections, held as planes."""
+        with torch.no_grad():
+            vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(rows, device=self.dev))]
+            return self.collide.linearise(vs[0], vs[1], keys=rows, margin_m=self.cfg.collision_margin_m)
+
+    def _forget(self, rows: np.ndarray) -> None:
+        """Drop the contacts located at frames ``rows``, whose corrections changed since."""
+        for f in np.asarray(rows).tolist():
+            self.located.pop(f, None)
 
     def _measure(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The deepest vertex (m) and penetrating share ``(len(rows),)`` each of frames ``rows`` at the
-        current corrections."""
+        current corrections. When contacts are held, the query that measures them also locates their
+        contacts, kept for the next :meth:`_locate` (the poses it would query are these, unless a frame
+        moves first: see :meth:`_forget`)."""
         depth, share = np.zeros(len(rows)), np.zeros(len(rows))
         for c0 in range(0, len(rows), CHUNK):
             sub = rows[c0 : c0 + CHUNK]
+            if self.cfg.collision_hold_contacts:
+                lin = self._linearise(sub)
+                self.located.update((f, (lin, i)) for i, f in enumerate(sub.tolist()))
+                depth[c0 : c0 + len(sub)], share[c0 : c0 + len(sub)] = lin.max_depth_m, lin.share
+                continue
             with torch.no_grad():
                 vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(sub, device=self.dev))]
                 pen = self.collide.penetration(vs[0], vs[1], keys=sub)

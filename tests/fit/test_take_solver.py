@@ -103,14 +103,20 @@ def test_a_frame_left_over_the_tolerance_weighs_one_step_more_in_the_next_round(
 def test_a_frame_a_round_leaves_deeper_goes_back_to_its_best_answer(model, monkeypatch):
     """Where a round leaves a frame over the tolerance and deeper than its best answer so far (here: the
     round's answer at the middle frame pushed 10 cm into the partner), that frame goes back to its best
-    corrections bit for bit, and the round is reported; the round's other frames keep their answers."""
+    corrections bit for bit, and the round is reported; the round's other frames keep their answers. The
+    contacts kept for each round are those of every frame's current pose (the one sent back included)."""
     T, f = 12, 6
     inputs = _step_in(T)
     seen = []
     real = TakeFitter._round
 
     def spy(self, rows, termed, mult, exact, variables):
+        kept = dict(self.located)  # the contacts kept for the round, each of its frame's current pose
         seen.append(([p.detach().clone() for p in self.params], self._measure(np.arange(T))[0]))
+        for g, (lin, i) in kept.items():
+            assert (lin.max_depth_m[i], lin.share[i]) == (self.located[g][0].max_depth_m[self.located[g][1]],
+                                                          self.located[g][0].share[self.located[g][1]]), g  # fmt: skip
+        self.located = kept
         ok = real(self, rows, termed, mult, exact, variables)
         if len(seen) == 2:  # the second round's answer: actor b's middle frame pushed into actor a
             assert f in rows
@@ -171,3 +177,39 @@ def test_the_hands_pass_comes_first_and_moves_the_openings_alone(model, monkeypa
     assert seen[0] == [(T, 4), (T, 4)]  # both actors' openings, nothing else
     assert (T, 23, 3) in seen[1] and (T, 3) in seen[1] and (T, 4) in seen[1]
     assert res.summary["collision_rounds_used"] == len(seen) - 1  # the hands' pass is not a full round
+
+
+def test_the_contacts_a_measurement_located_serve_the_next_round(model, monkeypatch):
+    """The depths after a round come from the same query that locates the contacts, and the next round
+    holds those contacts for the frames that have not moved since, instead of locating them again: the
+    fit is the same bit for bit as one that locates every round's contacts afresh, with fewer frames
+    located."""
+    from dualhuman_builder.geometry import collision
+
+    T = 30
+    inputs = _step_in(T)
+    located = []
+    real = collision.CollisionTerm.linearise
+
+    def spy(self, va, vb, keys=None, margin_m=0.005):
+        located.append(len(keys))
+        return real(self, va, vb, keys=keys, margin_m=margin_m)
+
+    monkeypatch.setattr(collision.CollisionTerm, "linearise", spy)
+    cfg = dataclasses.replace(CFG, collision_rounds=3, take_iterations=2, collision_deep_m=0.0, collision_weight=1e3)
+    kept = fit_actors(model, inputs, FPS, cfg)
+    n_kept = sum(located)
+    real_locate = TakeFitter._locate
+
+    def afresh(self, rows):  # every frame's contacts located again at the round's start
+        self.located.clear()
+        return real_locate(self, rows)
+
+    monkeypatch.setattr(TakeFitter, "_locate", afresh)
+    located.clear()
+    fresh = fit_actors(model, inputs, FPS, cfg)
+    assert kept.summary["collision_rounds_used"] >= 2
+    for a, b in zip(kept.sequence.actors, fresh.sequence.actors):
+        assert np.array_equal(np.asarray(a.pose), np.asarray(b.pose))
+        assert np.array_equal(np.asarray(a.transl), np.asarray(b.transl))
+    assert n_kept < sum(located)
