@@ -32,8 +32,9 @@ contact pass (:mod:`~dualhuman_builder.fit.contact_pass`) does not run here.
 
 Contacts are located ``CHUNK`` frames at a time, so memory grows with the frames in contact, not
 with whole meshes of the take. With contacts held, the query that measures the depths after a round
-also locates the contacts, and the next round holds them for the frames that have not moved since
-(the window solver's ``check`` does the same): the two queries of the same poses become one.
+also locates the contacts (:meth:`~dualhuman_builder.fit.problem.FitProblem.check`, the window
+solver's), and the next round holds them for the frames that have not moved since: the two queries
+of the same poses become one.
 Depths are metres; rows are timeline frames ``0 .. T - 1``.
 """
 
@@ -63,7 +64,7 @@ class TakeFitter(FitProblem):
         T, P, dev, cfg = self.T, PARAMS_PER_ACTOR, self.dev, self.cfg
         S = len(MVN_SEGMENTS)
         self.sl, self.none = slice(0, T), [None] * len(self.acts)
-        self.located: dict[int, tuple] = {}  # frame -> (Linearised, its batch row): held contacts still valid
+        self.located: dict = {}  # frame -> the LocatedContacts (problem.py) holding its contacts, while still valid
         params = []
         for _ in self.acts:
             params += [torch.zeros(T, S, 3, device=dev, requires_grad=True), torch.zeros(T, 3, device=dev, requires_grad=True),
@@ -258,31 +259,18 @@ class TakeFitter(FitProblem):
         regrouped, ``held`` per group ``(first, n, lin)`` whose frames are ``order[first : first + n]``
         and ``lin`` their :class:`~dualhuman_builder.geometry.collision.Linearised`. Frames whose
         contacts :meth:`_measure` located at their current corrections reuse them; the rest are located
-        here."""
-        order, held, fresh, groups = [], [], [], {}
+        here (a round holds contacts only when ``cfg.collision_hold_contacts``)."""
+        order, held, groups = [], [], {}
         for f in rows.tolist():
-            if f in self.located:
-                lin, i = self.located[f]
-                groups.setdefault(id(lin), (lin, [], []))
-                groups[id(lin)][1].append(f)
-                groups[id(lin)][2].append(i)
-            else:
-                fresh.append(f)
-        for lin, fs, idx in groups.values():
-            held.append((len(order), len(fs), lin if len(idx) == lin.B and idx == list(range(lin.B)) else lin.subset(idx)))
+            located = self.located.get(f)
+            groups.setdefault(id(located), (located, []))[1].append(f)
+        fresh = np.asarray(groups.pop(id(None), (None, []))[1], np.int64)
+        parts = list(groups.values()) + [(self.check(self.params, self.sl, sub)[1], sub.tolist())
+                                         for sub in (fresh[c0 : c0 + CHUNK] for c0 in range(0, len(fresh), CHUNK))]  # fmt: skip
+        for located, fs in parts:
+            held.append((len(order), len(fs), located.take(fs)))
             order += fs
-        fresh = np.asarray(fresh, np.int64)
-        for c0 in range(0, len(fresh), CHUNK):
-            sub = fresh[c0 : c0 + CHUNK]
-            held.append((len(order), len(sub), self._linearise(sub)))
-            order += sub.tolist()
         return np.asarray(order, np.int64), held
-
-    def _linearise(self, rows: np.ndarray):
-        """The contacts of frames ``rows`` (at most ``CHUNK``) at the current corrections, held as planes."""
-        with torch.no_grad():
-            vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(rows, device=self.dev))]
-            return self.collide.linearise(vs[0], vs[1], keys=rows, margin_m=self.cfg.collision_margin_m)
 
     def _forget(self, rows: np.ndarray) -> None:
         """Drop the contacts located at frames ``rows``, whose corrections changed since."""
@@ -290,20 +278,16 @@ class TakeFitter(FitProblem):
             self.located.pop(f, None)
 
     def _measure(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The deepest vertex (m) and penetrating share ``(len(rows),)`` each of frames ``rows`` at the
-        current corrections. When contacts are held, the query that measures them also locates their
-        contacts, kept for the next :meth:`_locate` (the poses it would query are these, unless a frame
-        moves first: see :meth:`_forget`)."""
+        """The deepest vertex (m) and penetrating share ``(len(rows),)`` each of frames ``rows`` (sorted)
+        at the current corrections (:meth:`~dualhuman_builder.fit.problem.FitProblem.check`). When
+        contacts are held, the query that measures them also locates their contacts, kept for the next
+        :meth:`_locate` (the poses it would query are these, unless a frame moves first: see
+        :meth:`_forget`)."""
         depth, share = np.zeros(len(rows)), np.zeros(len(rows))
         for c0 in range(0, len(rows), CHUNK):
             sub = rows[c0 : c0 + CHUNK]
-            if self.cfg.collision_hold_contacts:
-                lin = self._linearise(sub)
-                self.located.update((f, (lin, i)) for i, f in enumerate(sub.tolist()))
-                depth[c0 : c0 + len(sub)], share[c0 : c0 + len(sub)] = lin.max_depth_m, lin.share
-                continue
-            with torch.no_grad():
-                vs = [p.vertices for p in self.pose_bodies(self.params, self.sl, torch.as_tensor(sub, device=self.dev))]
-                pen = self.collide.penetration(vs[0], vs[1], keys=sub)
+            pen, located = self.check(self.params, self.sl, sub)
+            if located is not None:
+                self.located.update((f, located) for f in sub.tolist())
             depth[c0 : c0 + len(sub)], share[c0 : c0 + len(sub)] = pen["max_depth_m"], pen["share"]
         return depth, share

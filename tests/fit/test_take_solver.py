@@ -113,9 +113,9 @@ def test_a_frame_a_round_leaves_deeper_goes_back_to_its_best_answer(model, monke
     def spy(self, rows, termed, mult, exact, variables):
         kept = dict(self.located)  # the contacts kept for the round, each of its frame's current pose
         seen.append(([p.detach().clone() for p in self.params], self._measure(np.arange(T))[0]))
-        for g, (lin, i) in kept.items():
-            assert (lin.max_depth_m[i], lin.share[i]) == (self.located[g][0].max_depth_m[self.located[g][1]],
-                                                          self.located[g][0].share[self.located[g][1]]), g  # fmt: skip
+        for g, located in kept.items():
+            was, now = located.take([g]), self.located[g].take([g])
+            assert (was.max_depth_m[0], was.share[0]) == (now.max_depth_m[0], now.share[0]), g
         self.located = kept
         ok = real(self, rows, termed, mult, exact, variables)
         if len(seen) == 2:  # the second round's answer: actor b's middle frame pushed into actor a
