@@ -11,12 +11,13 @@ temporal network) and the lifting baseline alone. Figures on the test split's se
 over seeds: MPJPE (root-relative), PA-MPJPE and translation (pelvis) error in mm against the export's
 joints, over every frame (unrendered ones interpolated, then refined) and over the rendered frames
 only; the estimator's own figures before any refinement come from the full pipeline's first stage.
-Speed: training images/s (the run's summary) and inference images/s of the estimator at its training
-size on this machine; with `--device cuda`, also at 512x512 (training steps and inference on the
-export's frames resized to 512). Every estimate is checked with `export verify`.
+Speed, measured alone after every seed has finished (so `--jobs`, seeds in parallel processes, does not
+change it): training images/s of a `--speed-steps` run of each model and inference images/s of the
+estimator, at its training size on this machine; with `--device cuda`, also at 512x512 (training steps
+and inference on the export's frames resized to 512). Every estimate is checked with `export verify`.
 
     dualhuman synth GT --takes 200 --path ground-truth --export GT/export --render   # a rendered synthetic export
-    python benchmarks/bench_pose_estimator.py --export GT/export --seeds 3           # the experiment
+    python benchmarks/bench_pose_estimator.py --export GT/export --seeds 3 --jobs 2  # the experiment
     python benchmarks/bench_pose_estimator.py --quick --out /tmp/pe.json             # a tiny check
 """
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -110,10 +112,77 @@ def _speed_512(export: Path, work: Path, config: dict, device: str, steps: int =
     from dualhuman_builder.models.training import train
 
     run = work / "speed-512"
+    shutil.rmtree(run, ignore_errors=True)
     train("pose-estimator", export, run, config_overrides={**config, "size": 512, "steps": steps}, batch_size=8,
           device=device, progress=False)  # fmt: skip
     summary = json.loads((run / "summary.json").read_text())
     return {"train_images_per_s": summary.get("windows_per_s"), "inference_images_per_s": _inference_speed(run, export, device, 512)}
+
+
+def _models(configs: dict) -> dict[str, tuple[str, dict]]:
+    """Run key -> (registered model, config overrides) of everything a seed may train."""
+    return {"estimator": ("pose-estimator", configs["estimator"]),
+            "estimator_no_ia": ("pose-estimator", {**configs["estimator"], "interaction_attention": False}),
+            "temporal": ("temporal-refiner", configs["temporal"]), "prior": ("reaction-prior", configs["prior"]),
+            "lifting": ("lifting-baseline", configs["lifting"])}  # fmt: skip
+
+
+def _train_speed(key: str, export: Path, work: Path, configs: dict, device: str, batch_size: int, steps: int) -> float:
+    """Training items/s of run ``key``'s model: a run of ``steps`` steps (one phase each), alone on the
+    machine after every seed has finished, so that ``--jobs`` does not change the figure."""
+    from dualhuman_builder.models.training import train
+
+    name, cfg = _models(configs)[key]
+    run = work / f"speed-{key}"
+    shutil.rmtree(run, ignore_errors=True)  # a kept run would not be trained again, nor timed
+    train(name, export, run, config_overrides={**cfg, "steps": steps}, batch_size=batch_size, device=device,
+          progress=False)  # fmt: skip
+    return json.loads((run / "summary.json").read_text())["windows_per_s"]
+
+
+def _seed(job: tuple) -> dict:
+    """Train one seed's models (a finished run is kept) and run every pipeline over the export; a
+    process of its own with ``--jobs``. Returns ``{"seed", "runs", "verify_problems"}``."""
+    from dualhuman_builder.export.verify import verify_export
+    from dualhuman_builder.models.estimate import estimate_export
+    from dualhuman_builder.models.training import train
+
+    for name in ("dualhuman_builder.models.lifting", "dualhuman_builder.models.temporal"):
+        importlib.import_module(name)  # they register lifting-baseline and temporal-refiner
+    seed, c = job
+    if c["threads"] > 0:
+        torch.set_num_threads(c["threads"])
+    export, work, pipelines, test_ids = Path(c["export"]), Path(c["work"]), c["pipelines"], set(c["test_ids"])
+    out: dict = {"seed": seed, "runs": {}, "verify_problems": 0}
+    models, runs = _models(c["configs"]), {}
+    wanted = set(c["needed"]) | ({"temporal"} if any(PIPELINES[p][1] for p in pipelines) else set()) \
+        | ({"prior"} if any(PIPELINES[p][2] for p in pipelines) else set())  # fmt: skip
+    if "prior" in wanted and c["prior_from"] is not None:
+        runs["prior"] = Path(c["prior_from"]) / f"full-s{seed}"  # checked by main()
+        wanted = wanted - {"prior"}
+    for key in [k for k in models if k in wanted]:
+        name, cfg = models[key]
+        runs[key] = work / f"{key}-s{seed}"
+        t = time.perf_counter()
+        train(name, export, runs[key], config_overrides=cfg, steps_scale=c["steps_scale"], batch_size=c["batch_size"],
+              seed=seed, device=c["device"], progress=False)  # fmt: skip
+        summary = json.loads((runs[key] / "summary.json").read_text())
+        out["runs"][f"{key}-s{seed}"] = {"train_s": summary.get("time_s", time.perf_counter() - t),  # the run's own: a finished run is kept
+                                         "items_per_s": summary.get("windows_per_s"), "loader_share": summary.get("loader_share")}  # fmt: skip
+    for p in pipelines:
+        est, use_t, use_p = PIPELINES[p]
+        t = time.perf_counter()
+        s = estimate_export(runs[est], export, work / f"estimate-{p}-s{seed}", temporal_run=runs["temporal"] if use_t else None,
+                            prior_run=runs["prior"] if use_p else None, camera=c["camera"], device=c["device"],
+                            prior_window=c["prior_window"], prior_iterations=c["prior_iterations"],
+                            prior_lambda=c["prior_lambda"], progress=False)  # fmt: skip
+        out["verify_problems"] += len(verify_export(work / f"estimate-{p}-s{seed}"))
+        errs = _test_errors(s, test_ids)
+        errs["seconds"] = time.perf_counter() - t
+        out["runs"][f"estimate-{p}-s{seed}"] = errs
+        print(f"seed {seed} {p}: MPJPE {errs['final']['mpjpe_mm']:.1f} mm, PA-MPJPE {errs['final']['pa_mpjpe_mm']:.1f} mm, "
+              f"translation {errs['final']['translation_mm']:.1f} mm", flush=True)  # fmt: skip
+    return out
 
 
 def _prior_from(run: Path, export: Path) -> Path:
@@ -160,17 +229,17 @@ def main() -> None:
     ap.add_argument("--prior-from", type=Path, default=None, metavar="DIR",
                     help="use the reaction-prior runs DIR/full-s<seed> (e.g. bench_reaction_prior.py's --work) instead of "
                          "training them; refused unless they trained only on this export's train sequences, same motion")
-    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default; 1 with --jobs)")
+    ap.add_argument("--jobs", type=int, default=1, help="seeds at once, each in its own process")
+    ap.add_argument("--speed-steps", type=int, default=40,
+                    help="training steps of each model's speed run, alone after the seeds (default 40)")
     ap.add_argument("--quick", action="store_true", help="a tiny rendered export, tiny models, a few steps, one seed")
     ap.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
 
     from dualhuman_builder.export.files import read_manifest
-    from dualhuman_builder.export.verify import verify_export
     from dualhuman_builder.models.data import split_ids
-    from dualhuman_builder.models.estimate import estimate_export
-    from dualhuman_builder.models.training import train
 
     for name in ("dualhuman_builder.models.lifting", "dualhuman_builder.models.temporal"):
         importlib.import_module(name)  # they register lifting-baseline and temporal-refiner
@@ -185,7 +254,7 @@ def main() -> None:
 
         export = make_tiny_render_export(work, n_sequences=3, frames=16, views=2, size=48, every=2)
         configs = {k: dict(v) for k, v in QUICK.items()}
-        args.seeds, args.prior_window, args.prior_iterations, args.batch_size = 1, 8, 3, 4
+        args.seeds, args.prior_window, args.prior_iterations, args.batch_size, args.speed_steps = 1, 8, 3, 4, 4
     if export is None:
         ap.error("--export is required (or --quick)")
     for item in args.set:
@@ -200,56 +269,43 @@ def main() -> None:
     figures: dict = {"pipelines": {}, "runs": {}, "verify_problems": 0}
     per_pipeline: dict[str, list] = {p: [] for p in pipelines}
     estimator_only: list[dict] = []
+    if args.prior_from is not None and any(PIPELINES[p][2] for p in pipelines):
+        for seed in range(args.seeds):
+            _prior_from(args.prior_from / f"full-s{seed}", export)
     t0 = time.perf_counter()
-    for seed in range(args.seeds):
-        runs: dict[str, Path] = {}
-        train_s: dict[str, float] = {}
-        models = {"estimator": ("pose-estimator", configs["estimator"]),
-                  "estimator_no_ia": ("pose-estimator", {**configs["estimator"], "interaction_attention": False}),
-                  "temporal": ("temporal-refiner", configs["temporal"]), "prior": ("reaction-prior", configs["prior"]),
-                  "lifting": ("lifting-baseline", configs["lifting"])}  # fmt: skip
-        wanted = needed | ({"temporal"} if any(PIPELINES[p][1] for p in pipelines) else set()) \
-            | ({"prior"} if any(PIPELINES[p][2] for p in pipelines) else set())  # fmt: skip
-        if "prior" in wanted and args.prior_from is not None:
-            runs["prior"] = _prior_from(args.prior_from / f"full-s{seed}", export)
-            wanted = wanted - {"prior"}
-        for key in [k for k in models if k in wanted]:
-            name, cfg = models[key]
-            runs[key] = work / f"{key}-s{seed}"
-            t = time.perf_counter()
-            train(name, export, runs[key], config_overrides=cfg, steps_scale=args.steps_scale, batch_size=args.batch_size,
-                  seed=seed, device=args.device, progress=False)  # fmt: skip
-            summary = json.loads((runs[key] / "summary.json").read_text())
-            train_s[key] = summary.get("time_s", time.perf_counter() - t)  # the run's own: a finished run is kept
-            figures["runs"][f"{key}-s{seed}"] = {"train_s": train_s[key], "items_per_s": summary.get("windows_per_s"),
-                                                 "loader_share": summary.get("loader_share")}  # fmt: skip
+    common = {"export": str(export), "work": str(work), "configs": configs, "pipelines": pipelines, "needed": sorted(needed),
+              "prior_from": str(args.prior_from) if args.prior_from is not None else None, "test_ids": sorted(test_ids),
+              "steps_scale": args.steps_scale, "batch_size": args.batch_size, "device": args.device, "camera": args.camera,
+              "prior_window": args.prior_window, "prior_iterations": args.prior_iterations, "prior_lambda": args.prior_lambda,
+              "threads": args.threads if args.jobs == 1 else max(1, args.threads)}  # fmt: skip
+    jobs = [(seed, common) for seed in range(args.seeds)]
+    if args.jobs == 1:
+        done = [_seed(job) for job in jobs]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            done = list(pool.map(_seed, jobs))  # one seed per process, on its own thread(s); the figures do not depend on it
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    for rec in done:
+        figures["runs"].update(rec["runs"])
+        figures["verify_problems"] += rec["verify_problems"]
         for p in pipelines:
-            est, use_t, use_p = PIPELINES[p]
-            out = work / f"estimate-{p}-s{seed}"
-            t = time.perf_counter()
-            s = estimate_export(runs[est], export, out, temporal_run=runs["temporal"] if use_t else None,
-                                prior_run=runs["prior"] if use_p else None, camera=args.camera, device=args.device,
-                                prior_window=args.prior_window, prior_iterations=args.prior_iterations,
-                                prior_lambda=args.prior_lambda, progress=False)  # fmt: skip
-            problems = verify_export(out)
-            figures["verify_problems"] += len(problems)
-            errs = _test_errors(s, test_ids)
-            errs["seconds"] = time.perf_counter() - t
-            per_pipeline[p].append(errs)
-            figures["runs"][f"estimate-{p}-s{seed}"] = errs
-            if p == "full":
-                estimator_only.append({"rendered": errs["estimate_rendered"], "all_frames": errs["fill"]})
-            print(f"seed {seed} {p}: MPJPE {errs['final']['mpjpe_mm']:.1f} mm, PA-MPJPE {errs['final']['pa_mpjpe_mm']:.1f} mm, "
-                  f"translation {errs['final']['translation_mm']:.1f} mm", flush=True)  # fmt: skip
+            per_pipeline[p].append(rec["runs"][f"estimate-{p}-s{rec['seed']}"])
+        if "full" in pipelines:
+            errs = rec["runs"][f"estimate-full-s{rec['seed']}"]
+            estimator_only.append({"rendered": errs["estimate_rendered"], "all_frames": errs["fill"]})
     for p in pipelines:
         figures["pipelines"][p] = _mean_std(per_pipeline[p])
     if estimator_only:
         figures["estimator_only"] = _mean_std(estimator_only)
-    speed: dict = {"device": args.device}
+    speed: dict = {"device": args.device, "train_steps": args.speed_steps}
     for key in ("estimator", "lifting", "temporal"):
-        vals = [figures["runs"][f"{key}-s{s}"]["items_per_s"] for s in range(args.seeds) if f"{key}-s{s}" in figures["runs"]]
-        if vals:
-            speed[f"{key}_train_items_per_s"] = float(np.mean([v for v in vals if v is not None]))
+        if any(f"{key}-s{s}" in figures["runs"] for s in range(args.seeds)):
+            speed[f"{key}_train_items_per_s"] = _train_speed(key, export, work, configs, args.device, args.batch_size,
+                                                             args.speed_steps)  # fmt: skip
     if "estimator" in needed:
         speed["estimator_inference_images_per_s"] = _inference_speed(work / "estimator-s0", export, args.device)
         speed["estimator_size"] = int(configs["estimator"].get("size", 64))
