@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_file import Goal, Table, write_results
+from results_file import Goal, Table, lookup, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 #: pipeline -> (estimator model, temporal network, reaction prior)
@@ -330,6 +330,16 @@ def main() -> None:
                      *(f"estimator_only.all_frames.{m}.std" for m in metrics)])  # fmt: skip
     tables = [Table("Test sequences, every frame (mm, mean and std over seeds)",
                     ["pipeline", "MPJPE", "PA-MPJPE", "translation", "MPJPE std", "PA-MPJPE std", "translation std"], rows)]
+    speed_rows = [[label, f"speed.{key}"] for label, key in (
+        ("estimator, training (images/s)", "estimator_train_items_per_s"),
+        ("estimator, inference (images/s)", "estimator_inference_images_per_s"),
+        ("temporal network, training (windows/s)", "temporal_train_items_per_s"),
+        ("lifting baseline, training (frames/s)", "lifting_train_items_per_s"),
+        ("estimator at 512x512, training (images/s)", "at_512.train_images_per_s"),
+        ("estimator at 512x512, inference (images/s)", "at_512.inference_images_per_s")) if lookup(figures, f"speed.{key}") is not None]  # fmt: skip
+    if speed_rows:
+        tables.append(Table(f"Speed on {args.device}, at the estimator's training size ({speed.get('estimator_size')} px) "
+                            "unless said", ["what", "rate"], speed_rows))  # fmt: skip
     notes = ("--quick: a tiny rendered export and tiny models; the figures check the script, they measure nothing."
              if args.quick else "")  # fmt: skip
     if args.prior_from is not None:
