@@ -18,8 +18,13 @@ everything up to date and does nothing:
    left out; the demo exports ``DEMO`` even when a gate flags it, and says so);
 9. the reaction prior trained briefly on the export (:data:`DEMO_TRAIN`, run folder
    ``WS/models/reaction-prior``), and the export's reactor refined with it into ``WS/refined/``
-   (verified): the models run end to end, not to a useful accuracy;
-10. the review page ``WS/review.html`` of the workspace's takes.
+   (verified);
+10. the two-person pose estimator and the temporal network trained briefly on the export's renders
+    (:data:`DEMO_IMAGE_MODELS`, under ``WS/models/``), and both people estimated from one view of
+    the renders by the paper's pipeline (estimator, temporal network, the reaction prior's
+    test-time optimisation) into ``WS/estimated/`` (verified): the models run end to end, not to
+    a useful accuracy;
+11. the review page ``WS/review.html`` of the workspace's takes.
 """
 
 from __future__ import annotations
@@ -50,6 +55,9 @@ DEMO_RENDER = {"views": 4, "size": 192, "spp": 8, "every": 10}
 DEMO_TRAIN = {"model": "reaction-prior", "steps_scale": 0.01, "batch_size": 4, "seed": 0}
 DEMO_RUN_DIR = "models/reaction-prior"
 DEMO_REFINED_DIR = "refined"
+#: The image models, as briefly (:data:`DEMO_TRAIN`'s steps, batch and seed): run folder under ``WS/`` -> model.
+DEMO_IMAGE_MODELS = {"models/pose-estimator": "pose-estimator", "models/temporal-refiner": "temporal-refiner"}
+DEMO_ESTIMATED_DIR = "estimated"
 
 
 @dataclass
@@ -98,6 +106,7 @@ def run_demo(workspace: str | Path = "demo-workspace", log: Callable[[str], None
         _gates(ws, result, log)
         _export(ws, result, log)
         _train_and_refine(ws, result, log)
+        _estimate(ws, result, log)
         _review(ws, result, log)
     result.seconds = time.perf_counter() - t0
     return result
@@ -170,29 +179,58 @@ def _review(ws, result: DemoResult, log) -> None:
 
 def _train_and_refine(ws, result: DemoResult, log) -> None:
     """Train the reaction prior briefly on the demo's export and refine the export's reactor with it."""
-    from dualhuman_builder.export.verify import verify_export
     from dualhuman_builder.models.reaction_prior.refine import refine_export
-    from dualhuman_builder.models.training import train
 
     run_dir, export_dir, refined = ws.root / DEMO_RUN_DIR, ws.root / "export", ws.root / DEMO_REFINED_DIR
+    _trained(DEMO_TRAIN["model"], export_dir, run_dir, "train", result, log)
+    _derived("refine", refined, result, lambda: refine_export(run_dir, export_dir, refined, progress=False))
+    log(f"refine: the reactor refined with the prior -> {refined} (verified)")
+    result.outputs.update({"run": run_dir, "refined": refined})
+
+
+def _estimate(ws, result: DemoResult, log) -> None:
+    """Train the image models briefly on the demo's export and estimate both people from its renders
+    with them and the reaction prior (run by :func:`_train_and_refine`)."""
+    import dualhuman_builder.models.temporal  # noqa: F401  (registers temporal-refiner)
+    from dualhuman_builder.models.estimate import estimate_export
+
+    export_dir, out = ws.root / "export", ws.root / DEMO_ESTIMATED_DIR
+    for rel, model in DEMO_IMAGE_MODELS.items():
+        _trained(model, export_dir, ws.root / rel, f"train {model}", result, log)
+    estimator, temporal = (ws.root / rel for rel in DEMO_IMAGE_MODELS)
+    _derived("estimate", out, result, lambda: estimate_export(estimator, export_dir, out, temporal_run=temporal,
+                                                            prior_run=ws.root / DEMO_RUN_DIR, progress=False))  # fmt: skip
+    log(f"estimate: both people from the renders -> {out} (verified)")
+    result.outputs.update({"estimator": estimator, "temporal": temporal, "estimated": out})
+
+
+def _trained(model: str, export_dir: Path, run_dir: Path, step: str, result: DemoResult, log) -> None:
+    """Train ``model`` on ``export_dir`` into ``run_dir`` as :data:`DEMO_TRAIN` says (a finished run is
+    kept), counting ``step`` as run or up to date by whether its summary changed."""
+    from dualhuman_builder.models.training import train
+
     summary = run_dir / "summary.json"
     before = summary.read_bytes() if summary.is_file() else None
     o = DEMO_TRAIN
-    train(o["model"], export_dir, run_dir, steps_scale=o["steps_scale"], batch_size=o["batch_size"], seed=o["seed"],
+    train(model, export_dir, run_dir, steps_scale=o["steps_scale"], batch_size=o["batch_size"], seed=o["seed"],
           progress=lambda rec: None)  # fmt: skip
-    (result.up_to_date if before == summary.read_bytes() else result.ran).append("train")
-    log(f"train: {o['model']} -> {run_dir}")
-    manifest = refined / "manifest.json"
-    before = manifest.read_bytes() if manifest.is_file() else None
-    refine_export(run_dir, export_dir, refined, progress=False)
-    problems = verify_export(refined)
-    if problems:
-        from dualhuman_builder.errors import DualhumanError
+    (result.up_to_date if before == summary.read_bytes() else result.ran).append(step)
+    log(f"train: {model} -> {run_dir}")
 
-        raise DualhumanError(f"the demo's refined export does not verify: {problems[:5]}")
-    (result.up_to_date if before == manifest.read_bytes() else result.ran).append("refine")
-    log(f"refine: the reactor refined with the prior -> {refined} (verified)")
-    result.outputs.update({"run": run_dir, "refined": refined})
+
+def _derived(step: str, out: Path, result: DemoResult, write: Callable[[], object]) -> None:
+    """Write a model's export into ``out`` (``write()``), verify it, and count ``step`` as run or up
+    to date by whether its manifest changed."""
+    from dualhuman_builder.errors import DualhumanError
+    from dualhuman_builder.export.verify import verify_export
+
+    manifest = out / "manifest.json"
+    before = manifest.read_bytes() if manifest.is_file() else None
+    write()
+    problems = verify_export(out)
+    if problems:
+        raise DualhumanError(f"the demo's {step} export {out} does not verify: {problems[:5]}")
+    (result.up_to_date if before == manifest.read_bytes() else result.ran).append(step)
 
 
 def _note(result: DemoResult, log, stage: str, res, prefix: str = "") -> None:

@@ -32,7 +32,8 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     logs = []
     first = run_demo(ws_path, log=logs.append)
     stages = ["scene", "devices", "capture", "scene (CALIB)", "devices (CALIB)", "capture (CALIB)", "fit", "contacts",
-              "render", "sheet", "gates", "export", "train", "refine", "review"]  # fmt: skip
+              "render", "sheet", "gates", "export", "train", "refine", "train pose-estimator", "train temporal-refiner",
+              "estimate", "review"]  # fmt: skip
     assert first.ran == stages and first.up_to_date == []
     out = first.outputs
     assert set(out) >= {"scene.npz", "sequence.npz", "preview.png", "strip.png", "preview.glb", "devices.json",
@@ -126,10 +127,16 @@ def test_demo_runs_the_pipeline_and_is_idempotent(tmp_path):
     assert verify_export(out["refined"]) == []
     refined = json.loads((out["refined"] / "manifest.json").read_text())
     assert refined["refinement"] and list(refined["sequences"]) == ["DEMO"]
+    # both people estimated from the renders by the estimator, the temporal network and the prior
+    assert verify_export(out["estimated"]) == []
+    estimated = json.loads((out["estimated"] / "manifest.json").read_text())["estimation"]
+    assert estimated["stages"] == ["estimate", "fill", "temporal", "prior"] and estimated["sequences"] == 1
+    assert estimated["rendered_frames"] == len(range(0, fitted.num_frames, 10))
+    runs = ("run", "estimator", "temporal", "refined", "estimated")
     mtimes = {p: p.stat().st_mtime_ns for p in out.values() if p.is_file()}
-    mtimes.update({p: p.stat().st_mtime_ns for d in ("run", "refined") for p in out[d].rglob("*") if p.is_file()})
+    mtimes.update({p: p.stat().st_mtime_ns for d in runs for p in out[d].rglob("*") if p.is_file()})
     second = run_demo(ws_path, log=logs.append)
     assert second.ran == [] and second.up_to_date == stages
     again = {p: p.stat().st_mtime_ns for p in second.outputs.values() if p.is_file()}
-    again.update({p: p.stat().st_mtime_ns for d in ("run", "refined") for p in second.outputs[d].rglob("*") if p.is_file()})
+    again.update({p: p.stat().st_mtime_ns for d in runs for p in second.outputs[d].rglob("*") if p.is_file()})
     assert again == mtimes  # nothing rewritten
