@@ -24,7 +24,6 @@ and inference on the export's frames resized to 512). Every estimate is checked 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import shutil
 import sys
@@ -147,8 +146,6 @@ def _seed(job: tuple) -> dict:
     from dualhuman_builder.models.estimate import estimate_export
     from dualhuman_builder.models.training import train
 
-    for name in ("dualhuman_builder.models.lifting", "dualhuman_builder.models.temporal"):
-        importlib.import_module(name)  # they register lifting-baseline and temporal-refiner
     seed, c = job
     if c["threads"] > 0:
         torch.set_num_threads(c["threads"])
@@ -241,8 +238,6 @@ def main() -> None:
     from dualhuman_builder.export.files import read_manifest
     from dualhuman_builder.models.data import split_ids
 
-    for name in ("dualhuman_builder.models.lifting", "dualhuman_builder.models.temporal"):
-        importlib.import_module(name)  # they register lifting-baseline and temporal-refiner
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-pose-estimator-"))

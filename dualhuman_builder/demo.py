@@ -191,7 +191,6 @@ def _train_and_refine(ws, result: DemoResult, log) -> None:
 def _estimate(ws, result: DemoResult, log) -> None:
     """Train the image models briefly on the demo's export and estimate both people from its renders
     with them and the reaction prior (run by :func:`_train_and_refine`)."""
-    import dualhuman_builder.models.temporal  # noqa: F401  (registers temporal-refiner)
     from dualhuman_builder.models.estimate import estimate_export
 
     export_dir, out = ws.root / "export", ws.root / DEMO_ESTIMATED_DIR
