@@ -83,6 +83,8 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("probe_collision_band", "benchmarks/probes/probe_collision_band.py", ""),
     ("probe_tracker_offsets", "benchmarks/probes/probe_tracker_offsets.py --keep TAKES",
      "with TAKES a folder that keeps the tuning seeds' recordings"),
+    ("probe_fit_spread", "benchmarks/probes/probe_fit_spread.py --keep TAKES",
+     "with TAKES the folder of `fit_accuracy_realistic`'s run (its recording is the first of five)"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
