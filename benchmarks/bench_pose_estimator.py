@@ -15,6 +15,8 @@ Speed, measured alone after every seed has finished (so `--jobs`, seeds in paral
 change it): training images/s of a `--speed-steps` run of each model and inference images/s of the
 estimator, at its training size on this machine; with `--device cuda`, also at 512x512 (training steps
 and inference on the export's frames resized to 512). Every estimate is checked with `export verify`.
+A finished training run in `--work` is kept, and so is an estimate of the same runs, export and settings
+(`estimate_export` reads it back), so a stopped bench goes on where it stopped.
 
     dualhuman synth GT --takes 200 --path ground-truth --export GT/export --render   # a rendered synthetic export
     python benchmarks/bench_pose_estimator.py --export GT/export --seeds 3 --jobs 2  # the experiment
@@ -140,7 +142,8 @@ def _train_speed(key: str, export: Path, work: Path, configs: dict, device: str,
 
 
 def _seed(job: tuple) -> dict:
-    """Train one seed's models (a finished run is kept) and run every pipeline over the export; a
+    """Train one seed's models (a finished run is kept) and run every pipeline over the export (an
+    estimate of the same inputs is kept too: its ``seconds`` are then the reading's); a
     process of its own with ``--jobs``. Returns ``{"seed", "runs", "verify_problems"}``."""
     from dualhuman_builder.export.verify import verify_export
     from dualhuman_builder.models.estimate import estimate_export

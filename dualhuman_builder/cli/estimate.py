@@ -28,11 +28,13 @@ from dualhuman_builder.cli.app import console, main
               help="Weight of the prior term (default: the prior run's lambda_prior). Choose it on a validation split: "
                    "see docs/guides/models.md.")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True, help="Where to run the models.")
+@click.option("--force", is_flag=True,
+              help="Estimate again even when --out holds the estimate of the same runs, input and settings.")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="One line per sequence.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary (errors of every stage) as JSON.")
 def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: Path | None, camera: str | None,
-             prior_window: int, prior_iterations: int | None, prior_lambda: float | None, device: str, progress: bool,
-             as_json: bool):  # fmt: skip
+             prior_window: int, prior_iterations: int | None, prior_lambda: float | None, device: str, force: bool,
+             progress: bool, as_json: bool):  # fmt: skip
     """Estimate both people of every rendered sequence of DATASET with the pose estimator of RUN.
 
     Every rendered frame of one camera goes through the estimator, the people are linked over frames
@@ -43,7 +45,9 @@ def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: 
     input's, carried over (not estimated). Its sequence.json files and manifest say so, with the
     errors of every stage against DATASET's joints (MPJPE, PA-MPJPE, translation, mm). RUN may also be
     a run of the lifting baseline (from the render's 2D keypoints). Input is a rendered dataset
-    export; a folder of images without ground truth is not supported.
+    export; a folder of images without ground truth is not supported. When --out already holds the
+    estimate of the same runs (config and weights), input and settings, it is kept and its summary read
+    back (--force estimates again).
 
     \b
     Examples:
@@ -60,8 +64,9 @@ def estimate(run: Path, dataset: Path, out: Path, temporal: Path | None, prior: 
 
     summary = estimate_export(run, dataset, out, temporal_run=temporal, prior_run=prior, camera=camera, device=device,
                               prior_window=prior_window, prior_iterations=prior_iterations, prior_lambda=prior_lambda, progress=progress and not as_json,
-                              say=say)  # fmt: skip
+                              say=say, force=force)  # fmt: skip
     if as_json:
         click.echo(json.dumps({k: v for k, v in summary.items() if k != "per_sequence"}, indent=2))
     elif not progress:
-        console.print(f"estimated {summary['sequences']} sequences into {escape(str(out))}", highlight=False, soft_wrap=True)
+        done = "up to date" if summary["up_to_date"] else "estimated"
+        console.print(f"{done}: {summary['sequences']} sequences in {escape(str(out))}", highlight=False, soft_wrap=True)

@@ -52,6 +52,8 @@ from dualhuman_builder.errors import DualhumanError
 
 #: Models whose runs can be the estimator.
 ESTIMATORS = ("pose-estimator", "lifting-baseline")
+#: What each sequence's ``meta.estimation`` says besides its summary entry (``per_sequence``).
+SEQUENCE_NOTES = ("stages", "estimated", "carried_over", "identity", "unrendered_frames")
 
 
 def _predictor(spec) -> tuple[Callable[[torch.nn.Module, dict[str, Any]], dict[str, torch.Tensor]], tuple[str, ...]]:
@@ -173,7 +175,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
                     temporal_run: str | Path | None = None, prior_run: str | Path | None = None,
                     camera: str | None = None, device: str = "cpu", prior_window: int = 64,
                     prior_iterations: int | None = None, prior_lambda: float | None = None, progress: bool = True,
-                    say: Callable[[str], None] | None = None) -> dict[str, Any]:  # fmt: skip
+                    say: Callable[[str], None] | None = None, force: bool = False) -> dict[str, Any]:  # fmt: skip
     """Estimate both people of every rendered sequence of ``dataset_export`` with the estimator of the run
     ``estimator_run`` (then ``temporal_run``'s refinement and ``prior_run``'s test-time optimisation, when
     given) and write the result as an export under ``out_dir``; returns a summary (module docstring).
@@ -182,7 +184,11 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     ``cpu`` or ``cuda``. ``prior_window``, ``prior_iterations``: the reaction prior's windows (frames) and
     optimiser steps per window (default: the run's ``refine_iterations``). ``prior_lambda``: the prior
     term's weight (default: the run's ``lambda_prior``; choose it on a validation split). ``progress``: one line per
-    sequence to ``say`` (default print). DualhumanError for a run that is not an estimator (or not a
+    sequence to ``say`` (default print). When ``out_dir`` already holds the estimate of the same runs
+    (their config and last weights), the same input export and the same settings (``inputs_sha256`` in
+    its manifest's ``estimation``), its summary is read back instead (``up_to_date`` true), unless
+    ``force``: an estimate costs minutes per hundred sequences, and benches and the demo run it again.
+    DualhumanError for a run that is not an estimator (or not a
     temporal refiner / reaction prior where those are asked), an export without renders, an unknown
     camera, or ``out_dir`` equal to the input.
     """
@@ -223,6 +229,13 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     if prior_lambda is not None and not (math.isfinite(prior_lambda) and prior_lambda >= 0):
         raise DualhumanError(f"the prior's weight must be a finite number >= 0, got {prior_lambda!r}", fix="use e.g. --prior-lambda 1")
     p_lambda = float(prior.config["lambda_prior"] if prior is not None and prior_lambda is None else prior_lambda or 0.0)
+    key = _inputs_key(src, dev, {"estimator": estimator_run, "temporal": temporal_run, "prior": prior_run},
+                      {"camera": camera, "prior_window": int(prior_window), "prior_iterations": p_iters, "prior_lambda": p_lambda})
+    kept = None if force else _kept(dst, key)
+    if kept is not None:
+        if progress:
+            say(f"{dst}: up to date (the same runs, input and settings; force=True estimates again)")
+        return kept
     size = int(config.get("size", 64))
     ds = ImageFrames(src, "all", size=size, augment=False, views=[camera] if camera else None, cache_mb=0)
     manifest = read_manifest(src)
@@ -252,6 +265,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
         "carried_over": ["pose and shape of both people (not estimated; they do not reproduce the estimated joints)",
                          "labels, texts, roles, subjects, splits"],
         "not_carried": ["contacts", "renders", "cameras"],
+        "inputs_sha256": key,
     }  # fmt: skip
     sids = list(ds.ids)
     how["not_estimated"] = sorted(set(manifest.get("sequences", {})) - set(sids))  # no renders (of this camera)
@@ -329,8 +343,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
                                   labels=tuple(text.get("labels", [])), text=tuple(text.get("texts", [])))  # fmt: skip
         per_seq[sid] = rec
         meta = dict(seq_doc.get("meta") or {})
-        meta["estimation"] = {**rec, "stages": stages, "estimated": how["estimated"], "carried_over": how["carried_over"],
-                              "identity": how["identity"], "unrendered_frames": how["unrendered_frames"]}  # fmt: skip
+        meta["estimation"] = {**rec, **{k: how[k] for k in SEQUENCE_NOTES}}
         items.append(derived_item(sid, seq, seq_doc, text, meta))
         splits[sid] = manifest["sequences"][sid].get("split", "train")
         if progress:
@@ -348,13 +361,49 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
                "per_sequence": per_seq}  # fmt: skip
     write_derived_export(items, dst, manifest, vocabulary, splits,
                          {"estimation": {k: v for k, v in summary.items() if k != "per_sequence"}})
-    summary["out"] = str(dst)
+    summary["out"], summary["up_to_date"] = str(dst), False
     if progress:
         f = figures["final"]
         say(f"estimated {len(items)} sequences ({summary['rendered_frames']} rendered frames, {summary['frames']} in all; "
             f"stages {' -> '.join(stages)}): MPJPE {f['mpjpe_mm']:.1f} mm, PA-MPJPE {f['pa_mpjpe_mm']:.1f} mm, "
             f"translation {f['translation_mm']:.1f} mm; {dst}")  # fmt: skip
     return summary
+
+
+def _inputs_key(src: Path, dev: torch.device, run_dirs: dict[str, Any], settings: dict[str, Any]) -> str:
+    """SHA-256 of what an estimate depends on: the toolkit's version, the device type, the input export's
+    manifest (which records every file's SHA-256), each run's config and last weights' SHA-256, and
+    ``settings``."""
+    from dualhuman_builder import __version__
+    from dualhuman_builder.models import runs
+
+    def run_digest(run: Any) -> Any:
+        if run is None:
+            return None
+        last = runs.read_json(Path(run) / runs.CHECKPOINTS / runs.LAST, "the checkpoint record")
+        return [hashlib.sha256((Path(run) / runs.CONFIG).read_bytes()).hexdigest(), last.get("weights_sha256")]
+
+    doc = {"version": __version__, "device": dev.type, "settings": settings,
+           "input": hashlib.sha256((src / "manifest.json").read_bytes()).hexdigest(),
+           "runs": {k: run_digest(r) for k, r in run_dirs.items()}}  # fmt: skip
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _kept(dst: Path, key: str) -> dict[str, Any] | None:
+    """The summary of the estimate in ``dst`` when its manifest records inputs ``key`` and every estimated
+    sequence's ``sequence.json`` is there; else None (estimate again)."""
+    try:
+        doc = json.loads((dst / "manifest.json").read_text())
+        est = doc.get("estimation") or {}
+        if est.get("inputs_sha256") != key:
+            return None
+        per_seq = {}
+        for sid in doc.get("sequences", {}):
+            meta = json.loads((dst / "sequences" / sid / "sequence.json").read_text()).get("meta", {}).get("estimation")
+            per_seq[sid] = {k: v for k, v in meta.items() if k not in SEQUENCE_NOTES}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None
+    return {**est, "per_sequence": per_seq, "out": str(dst), "up_to_date": True}
 
 
 __all__ = ["ESTIMATORS", "estimate_export", "fill_frames"]

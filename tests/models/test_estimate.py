@@ -131,6 +131,10 @@ def test_the_cli_runs_the_lifting_baseline_the_temporal_network_and_the_prior(ex
     assert set(doc["errors"]) >= {"estimate_rendered", "fill", "temporal", "prior", "final"}
     assert verify_export(out) == []
     assert read_manifest(out)["estimation"]["camera"] == "view01"
+    again = CliRunner().invoke(main, ["estimate", str(runs["lift"]), str(export), "--out", str(out), "--temporal",
+                                      str(runs["temporal"]), "--prior", str(runs["prior"]), "--prior-window", "8",
+                                      "--prior-iterations", "2", "--camera", "view01", "--no-progress"])  # fmt: skip
+    assert again.exit_code == 0 and "up to date: 2 sequences" in again.output, again.output
 
 
 def test_wrong_runs_and_cameras_are_clear_errors(export, runs, tmp_path):
@@ -153,6 +157,23 @@ def test_the_prior_weight_is_the_callers_when_given_and_recorded(export, runs, t
     assert light["errors"]["prior"]["mpjpe_mm"] != heavy["errors"]["prior"]["mpjpe_mm"]  # the weight reaches the optimiser
     with pytest.raises(DualhumanError, match="finite number >= 0"):
         estimate_export(runs["oracle"], export, tmp_path / "bad", prior_lambda=-1.0, **kw)
+
+
+def test_an_estimate_of_the_same_runs_input_and_settings_is_read_back_not_made_again(export, runs, tmp_path):
+    out = tmp_path / "est"
+    kw = {"temporal_run": runs["temporal"], "prior_run": runs["prior"], "prior_window": 8, "prior_iterations": 2,
+          "progress": False}  # fmt: skip
+    first = estimate_export(runs["lift"], export, out, **kw)
+    stamp = (out / "manifest.json").stat().st_mtime_ns
+    again = estimate_export(runs["lift"], export, out, **kw)
+    assert not first["up_to_date"] and again["up_to_date"]
+    assert (out / "manifest.json").stat().st_mtime_ns == stamp  # nothing rewritten
+    assert {k: v for k, v in again.items() if k != "up_to_date"} == {k: v for k, v in first.items() if k != "up_to_date"}
+    assert not estimate_export(runs["lift"], export, out, force=True, **kw)["up_to_date"]
+    other = estimate_export(runs["lift"], export, out, **{**kw, "prior_lambda": 5.0})  # another setting: estimated again
+    assert not other["up_to_date"] and read_manifest(out)["estimation"]["prior"]["lambda_prior"] == 5.0
+    assert not estimate_export(runs["oracle"], export, out, **{**kw, "prior_lambda": 5.0})["up_to_date"]  # another run
+    assert verify_export(out) == []
 
 
 def test_frames_estimated_together_are_the_frames_estimated_one_at_a_time(export, tmp_path):
