@@ -231,7 +231,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     p_lambda = float(prior.config["lambda_prior"] if prior is not None and prior_lambda is None else prior_lambda or 0.0)
     key = _inputs_key(src, dev, {"estimator": estimator_run, "temporal": temporal_run, "prior": prior_run},
                       {"camera": camera, "prior_window": int(prior_window), "prior_iterations": p_iters, "prior_lambda": p_lambda})
-    kept = None if force else _kept(dst, key)
+    kept = None if force or key is None else _kept(dst, key)
     if kept is not None:
         if progress:
             say(f"{dst}: up to date (the same runs, input and settings; force=True estimates again)")
@@ -370,10 +370,10 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     return summary
 
 
-def _inputs_key(src: Path, dev: torch.device, run_dirs: dict[str, Any], settings: dict[str, Any]) -> str:
+def _inputs_key(src: Path, dev: torch.device, run_dirs: dict[str, Any], settings: dict[str, Any]) -> str | None:
     """SHA-256 of what an estimate depends on: the toolkit's version, the device type, the input export's
     manifest (which records every file's SHA-256), each run's config and last weights' SHA-256, and
-    ``settings``."""
+    ``settings``; None when the input has no manifest (the estimate then says what is wrong)."""
     from dualhuman_builder import __version__
     from dualhuman_builder.models import runs
 
@@ -383,8 +383,11 @@ def _inputs_key(src: Path, dev: torch.device, run_dirs: dict[str, Any], settings
         last = runs.read_json(Path(run) / runs.CHECKPOINTS / runs.LAST, "the checkpoint record")
         return [hashlib.sha256((Path(run) / runs.CONFIG).read_bytes()).hexdigest(), last.get("weights_sha256")]
 
-    doc = {"version": __version__, "device": dev.type, "settings": settings,
-           "input": hashlib.sha256((src / "manifest.json").read_bytes()).hexdigest(),
+    try:
+        manifest = (src / "manifest.json").read_bytes()
+    except OSError:
+        return None
+    doc = {"version": __version__, "device": dev.type, "settings": settings, "input": hashlib.sha256(manifest).hexdigest(),
            "runs": {k: run_digest(r) for k, r in run_dirs.items()}}  # fmt: skip
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 

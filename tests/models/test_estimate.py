@@ -146,6 +146,9 @@ def test_wrong_runs_and_cameras_are_clear_errors(export, runs, tmp_path):
         estimate_export(runs["oracle"], export, tmp_path / "c", camera="nope", progress=False)
     with pytest.raises(DualhumanError, match="into itself"):
         estimate_export(runs["oracle"], export, export, progress=False)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DualhumanError):  # not an export: said so, not a missing-file traceback
+        estimate_export(runs["oracle"], tmp_path / "empty", tmp_path / "d", progress=False)
 
 
 def test_the_prior_weight_is_the_callers_when_given_and_recorded(export, runs, tmp_path):
