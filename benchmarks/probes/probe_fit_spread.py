@@ -8,7 +8,7 @@ records in real time), and the fit's discrete decisions (a round undone, a frame
 fraction of a millimetre there into millimetres in its answer. So a change to the fit that moves an
 accuracy table's row says little until it is set against this spread. Per recording (``--recordings``;
 the first is the accuracy bench's own, ``TAKES/<type>-<seed>[-<preset>]/``, the others
-``TAKES/<type>-<seed>[-<preset>]-r<i>/``, recorded when missing) it fits the take once with each
+``TAKES/r<i>/<type>-<seed>[-<preset>]/``, recorded in real time when missing) it fits the take once with each
 ``--solver`` and scores it as the accuracy bench does (trackers and the collision term on). Written per
 solver: every recording's row, and the mean, standard deviation, minimum and maximum of each column;
 with two solvers, the mean and the spread of their per-recording differences (second minus first).
@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: results_file
 
+from bench_fit_accuracy import recorded  # noqa: E402
 from results_file import Table, write_results  # noqa: E402
 
 #: column -> (label, the evaluate_take_fit key, scale)
@@ -36,22 +37,10 @@ COLUMNS = {"mpjpe_mm": ("MPJPE (mm)", "mpjpe_mm", 1.0), "pa_mpjpe_mm": ("PA-MPJP
            "foot_slide_mm": ("foot slide (mm)", "foot_slide_mm", 1.0), "contact_f1": ("contact F1", "contact_f1", 1.0)}  # fmt: skip
 
 
-def recording(keep: Path, typ: str, seed: int, preset: str, fps: float, i: int):
-    """Recording ``i`` of the take (0: the accuracy bench's folder), recorded first when missing:
-    ``(take path, scene)``."""
-    from dualhuman_builder.evaluation.fit import record_simulated_take
-    from dualhuman_builder.sim.scenes import Scene
-
-    name = f"{typ}-{seed}" + ("" if preset == "ideal" else f"-{preset}")
-    d = keep / (name if i == 0 else f"{name}-r{i}")
-    take, scene = d / f"{name}.mcap", d / f"{typ}-{seed}.scene.npz"
-    if not (take.is_file() and scene.is_file()):
-        print(f"recording {d}", flush=True)
-        record_simulated_take(typ, seed, d, fps=fps, preset=preset)
-    scene = Scene.load(scene)
-    if abs(scene.sequence.fps - fps) > 1e-9:
-        raise SystemExit(f"{take} was recorded at {scene.sequence.fps:g} fps, not {fps:g}: use another --keep folder")
-    return take, scene
+def recording(keep: Path, typ: str, seed: int, preset: str, fps: float, model, i: int):
+    """Recording ``i`` of the take, ``(take path, scene)``: the accuracy bench's own in ``keep`` (``i`` 0)
+    or another in ``keep/r<i>``, recorded first when missing (:func:`bench_fit_accuracy.recorded`)."""
+    return recorded(typ, seed, fps, 1.0, keep if i == 0 else keep / f"r{i}", model, preset)
 
 
 def spread(rows: list[dict]) -> dict:
@@ -88,7 +77,7 @@ def main():
     model = get_body_model()
     rows: dict[str, list[dict]] = {s: [] for s in solvers}
     for i in range(args.recordings):
-        take, scene = recording(args.keep, args.type, args.seed, args.preset, args.fps, i)
+        take, scene = recording(args.keep, args.type, args.seed, args.preset, args.fps, model, i)
         for s in solvers:
             tf = process_take(take, fps=args.fps, model=model, config=FitConfig(solver=s))
             ev = evaluate_take_fit(tf, scene, seed=args.seed, model=model, preset=args.preset)

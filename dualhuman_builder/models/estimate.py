@@ -187,7 +187,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     sequence to ``say`` (default print). When ``out_dir`` already holds the estimate of the same runs
     (their config and last weights), the same input export and the same settings (``inputs_sha256`` in
     its manifest's ``estimation``), its summary is read back instead (``up_to_date`` true), unless
-    ``force``: an estimate costs minutes per hundred sequences, and benches and the demo run it again.
+    ``force``: benches and the demo ask for the same estimate again, and a stopped bench goes on.
     DualhumanError for a run that is not an estimator (or not a
     temporal refiner / reaction prior where those are asked), an export without renders, an unknown
     camera, or ``out_dir`` equal to the input.
@@ -234,7 +234,7 @@ def estimate_export(estimator_run: str | Path, dataset_export: str | Path, out_d
     kept = None if force or key is None else _kept(dst, key)
     if kept is not None:
         if progress:
-            say(f"{dst}: up to date (the same runs, input and settings; force=True estimates again)")
+            say(f"{dst}: up to date (the same runs, input and settings); --force estimates again")
         return kept
     size = int(config.get("size", 64))
     ds = ImageFrames(src, "all", size=size, augment=False, views=[camera] if camera else None, cache_mb=0)
