@@ -184,7 +184,8 @@ def main():
                          "default), or a comma-separated list to compare (default: auto)")
     ap.add_argument("--solver", default="windows",
                     help="the fit's solver: windows (the default fit), take (the whole take as one problem, one "
-                         "process), or windows,take to compare them in the same run (ratios to the first)")
+                         "process; take:shared or take:runs for its step, FitConfig.take_step), or a comma-separated "
+                         "list to compare them in the same run (ratios to the first)")
     ap.add_argument("--save-inputs", metavar="FILE", help="write the take's inputs and ground truth to FILE (.npz)")
     ap.add_argument("--inputs", metavar="FILE", help="read the take from FILE (--save-inputs) instead of generating it; "
                     "--fps is then the file's")
@@ -192,14 +193,17 @@ def main():
                     help="results file (default benchmarks/results/fit.json, or fit_cuda.json on cuda)")
     args = ap.parse_args()
     from dualhuman_builder.body.model import get_body_model
+    from dualhuman_builder.fit.config import solver_fields
     from dualhuman_builder.fit.fitter import FitConfig, fit_actors
 
     workers = [None if w.strip() == "auto" else int(w) for w in args.workers.split(",")]
     solvers = [x.strip() for x in args.solver.split(",")]
-    if not set(solvers) <= {"windows", "take"}:
-        ap.error(f"--solver: windows, take or both, got {args.solver!r}")
+    try:
+        fields = {sv: solver_fields(sv) for sv in solvers}
+    except ValueError as e:
+        ap.error(f"--solver: {e}")
     # (solver, workers, key): the take solver runs in one process whatever --workers says
-    settings = [(sv, w, str(w or "auto") if sv == "windows" else "take") for sv in solvers for w in (workers if sv == "windows" else [1])]
+    settings = [(sv, w, str(w or "auto") if sv == "windows" else sv) for sv in solvers for w in (workers if sv == "windows" else [1])]
 
     model = get_body_model(args.device)
     truth: list = []
@@ -233,7 +237,7 @@ def main():
     for mode in modes:
         for solver, w, key in settings:
             cfg = FitConfig(collision=mode != "off", collision_hold_contacts=mode == "held", device=args.device, torch_threads=threads,
-                            solver=solver)  # fmt: skip
+                            **fields[solver])  # fmt: skip
             rates = []
             for _ in range(args.runs):
                 res = fit_actors(model, inp, args.fps, cfg, workers=w)

@@ -123,21 +123,23 @@ def recorded(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, mo
 def one_take(scene_type: str, seed: int, fps: float, speed: float, tmp: Path, model, compare_exact: bool = False,
              mounts_from=None, preset: str = "ideal", trackers: bool = True, solver: str = "windows") -> dict:  # fmt: skip
     from dualhuman_builder.evaluation.fit import evaluate_take_fit
+    from dualhuman_builder.fit.config import solver_fields
     from dualhuman_builder.fit.fitter import FitConfig
     from dualhuman_builder.fit.process import process_take
 
     take, scene = recorded(scene_type, seed, fps, speed, tmp, model, preset)
+    solver = solver_fields(solver)
     t0 = time.perf_counter()
-    tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from, use_trackers=trackers, config=FitConfig(solver=solver))
+    tf = process_take(take, fps=fps, model=model, mounts_from=mounts_from, use_trackers=trackers, config=FitConfig(**solver))
     wall = time.perf_counter() - t0
     ev = evaluate_take_fit(tf, scene, seed=seed, model=model, preset=preset)
     extra = {}
     if compare_exact:
-        exact = process_take(take, fps=fps, config=FitConfig(collision_hold_contacts=False, solver=solver), model=model)
+        exact = process_take(take, fps=fps, config=FitConfig(collision_hold_contacts=False, **solver), model=model)
         extra = {"fit_s_exact": exact.fit.summary["fit_seconds"],
                  "mpjpe_exact_mm": evaluate_take_fit(exact, scene, seed=seed, model=model, contacts=False,
                                                      preset=preset)["mpjpe_mm"]}  # fmt: skip
-    free = evaluate_take_fit(process_take(take, fps=fps, use_trackers=False, config=FitConfig(collision=False, solver=solver), model=model),
+    free = evaluate_take_fit(process_take(take, fps=fps, use_trackers=False, config=FitConfig(collision=False, **solver), model=model),
                              scene, seed=seed, model=model, contacts=False, preset=preset)  # fmt: skip
     return {
         "type": scene_type, "seed": seed, "frames": ev["frames"],
@@ -190,8 +192,9 @@ def main() -> None:
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
-    ap.add_argument("--solver", choices=("windows", "take"), default="windows",
-                    help="the fit's solver (FitConfig.solver); take writes fit_accuracy[...]_take.json")
+    ap.add_argument("--solver", choices=("windows", "take", "take:shared", "take:runs"), default="windows",
+                    help="the fit's solver (FitConfig.solver; take:<step> sets FitConfig.take_step too); take writes "
+                         "fit_accuracy[...]_take.json, take:<step> fit_accuracy[...]_take_<step>.json")
     ap.add_argument("--no-trackers", action="store_true",
                     help="fit without the trackers (the collision term kept): what the trackers buy, as the same table")
     ap.add_argument("--calibration", action="store_true",
@@ -200,7 +203,7 @@ def main() -> None:
     if args.no_trackers and args.calibration:
         raise SystemExit("--calibration carries tracker mounts; it has no meaning with --no-trackers")
     name = ("fit_accuracy" + ("_calibrated" if args.calibration else "") + ("" if args.preset == "ideal" else f"_{args.preset}")
-            + ("_no_trackers" if args.no_trackers else "") + ("_take" if args.solver == "take" else ""))  # fmt: skip
+            + ("_no_trackers" if args.no_trackers else "") + ("" if args.solver == "windows" else "_" + args.solver.replace(":", "_")))  # fmt: skip
     cols = COLUMNS + ("fit_s", "exact_frames", "exact_windows") + (("fit_s_exact", "mpjpe_exact_mm") if args.compare_exact else ())
 
     from dualhuman_builder.body.model import get_body_model

@@ -11,7 +11,11 @@ the first is the accuracy bench's own, ``TAKES/<type>-<seed>[-<preset>]/``, the 
 ``TAKES/r<i>/<type>-<seed>[-<preset>]/``, recorded in real time when missing) it fits the take once with each
 ``--solver`` and scores it as the accuracy bench does (trackers and the collision term on). Written per
 solver: every recording's row, and the mean, standard deviation, minimum and maximum of each column;
-with two solvers, the mean and the spread of their per-recording differences (second minus first).
+the mean and the spread of each later solver's per-recording differences from the first's. The take
+solver's two steps side by side, on the same recordings:
+
+    .venv/bin/python benchmarks/probes/probe_fit_spread.py --keep TAKES --solver take:shared,take:runs,windows \
+        --out benchmarks/results/probe_fit_spread_take_step.json
 
 Writes ``benchmarks/results/probe_fit_spread.json`` (``--out`` elsewhere).
 """
@@ -59,15 +63,22 @@ def main():
     ap.add_argument("--seed", type=int, default=11, help="scene and device seed (default: 11)")
     ap.add_argument("--preset", default="realistic", choices=("ideal", "realistic"), help="device errors (default: realistic)")
     ap.add_argument("--recordings", type=int, default=5, help="recordings of the take (default: 5)")
-    ap.add_argument("--solver", default="windows,take", help="comma-separated solvers (default: windows,take)")
+    ap.add_argument("--solver", default="windows,take",
+                    help="comma-separated solvers: windows, take, take:shared, take:runs (default: windows,take)")
     ap.add_argument("--fps", type=float, default=15.0, help="scene and fit frame rate (default: 15)")
     ap.add_argument("--out", type=Path, default=None, help="results file (default: benchmarks/results/probe_fit_spread.json)")
     args = ap.parse_args()
     solvers = [s for s in args.solver.split(",") if s]
     if args.recordings < 2:
         ap.error("--recordings: a spread needs at least 2")
-    if not solvers or set(solvers) - {"windows", "take"}:
-        ap.error(f"--solver: 'windows' and/or 'take', got {args.solver!r}")
+    from dualhuman_builder.fit.config import solver_fields
+
+    try:
+        fields = {s: solver_fields(s) for s in solvers}
+    except ValueError as e:
+        ap.error(f"--solver: {e}")
+    if not solvers:
+        ap.error("--solver: name at least one")
 
     from dualhuman_builder.body.model import get_body_model
     from dualhuman_builder.evaluation.fit import evaluate_take_fit
@@ -79,18 +90,20 @@ def main():
     for i in range(args.recordings):
         take, scene = recording(args.keep, args.type, args.seed, args.preset, args.fps, model, i)
         for s in solvers:
-            tf = process_take(take, fps=args.fps, model=model, config=FitConfig(solver=s))
+            tf = process_take(take, fps=args.fps, model=model, config=FitConfig(**fields[s]))
             ev = evaluate_take_fit(tf, scene, seed=args.seed, model=model, preset=args.preset)
             rows[s].append({c: float(ev[k]) * scale for c, (_, k, scale) in COLUMNS.items()})
-            print(f"recording {i} {s:8s} " + "  ".join(f"{c} {v:.3g}" for c, v in rows[s][-1].items()), flush=True)
+            print(f"recording {i} {s:11s} " + "  ".join(f"{c} {v:.3g}" for c, v in rows[s][-1].items()), flush=True)
     figures: dict = {s: {"recordings": rows[s], **spread(rows[s])} for s in solvers}
-    if len(solvers) == 2:
-        a, b = rows[solvers[0]], rows[solvers[1]]
-        diff = [{c: rb[c] - ra[c] for c in COLUMNS} for ra, rb in zip(a, b)]
-        figures["difference"] = {"of": f"{solvers[1]} - {solvers[0]}", "recordings": diff, **spread(diff)}
+    diffs = {}  # each later solver's rows minus the first's: "difference" with two, "difference <solver>" with more
+    for other in solvers[1:]:
+        diff = [{c: rb[c] - ra[c] for c in COLUMNS} for ra, rb in zip(rows[solvers[0]], rows[other])]
+        diffs["difference" if len(solvers) == 2 else f"difference {other}"] = {"of": f"{other} - {solvers[0]}", "recordings": diff,
+                                                                                **spread(diff)}  # fmt: skip
+    figures.update(diffs)
     for s in figures:
-        print(f"{s:10s} " + "  ".join(f"{c} {figures[s]['mean'][c]:.3g} ± {figures[s]['std'][c]:.2g}" for c in COLUMNS))
-    groups = [*solvers, *(["difference"] if len(solvers) == 2 else [])]
+        print(f"{s:11s} " + "  ".join(f"{c} {figures[s]['mean'][c]:.3g} ± {figures[s]['std'][c]:.2g}" for c in COLUMNS))
+    groups = [*solvers, *diffs]
     cols = ["column"] + [f"{g} {stat}" for g in groups for stat in ("mean", "std")]
     table_rows = [[label] + [f"{g}.{stat}.{c}" for g in groups for stat in ("mean", "std")] for c, (label, _, _) in COLUMNS.items()]
     path = write_results("probe_fit_spread", figures,

@@ -38,6 +38,10 @@ class FitConfig:
     #: every frame over a tolerance at once, and the frames share its curvature pairs and step length, so
     #: it needs more than a window's run (chosen on the tuning seeds, docs/decisions/0029-take-solver.md)
     take_iterations: int = 36
+    #: the take solver's collision passes: ``"shared"``, one ``torch.optim.LBFGS`` run over every moving
+    #: frame (one step length and curvature history for all); ``"runs"``, each block of moving frames its
+    #: own L-BFGS run, all evaluated at once (:mod:`~dualhuman_builder.fit.block_lbfgs`)
+    take_step: str = "shared"
     #: full collision rounds per window at most, while a frame is over a tolerance below. Each pass is
     #: weighted ``collision_weight_step`` times the one before: the hands' pass at ``collision_weight``,
     #: round 1 at x4, round 2 at x16 ... (docs/decisions/0015-collision-weight-schedule.md)
@@ -138,6 +142,20 @@ class FitConfig:
 
 #: the values of :attr:`FitConfig.solver`
 SOLVERS = ("windows", "take")
+#: the values of :attr:`FitConfig.take_step`
+TAKE_STEPS = ("shared", "runs")
+
+
+def solver_fields(name: str) -> dict:
+    """The :class:`FitConfig` fields of a solver named ``name``: a :data:`SOLVERS` value (``take`` with
+    :attr:`FitConfig.take_step`'s default), or ``take:<step>`` with a :data:`TAKE_STEPS` value (the
+    benchmarks set the take solver's two steps side by side by these names). ValueError names the
+    choices."""
+    solver, _, step = name.partition(":")
+    if solver not in SOLVERS or (step and (solver != "take" or step not in TAKE_STEPS)):
+        raise ValueError(f"unknown fit solver {name!r}; choose one of {', '.join(SOLVERS)} or "
+                         + ", ".join(f"take:{s}" for s in TAKE_STEPS))  # fmt: skip
+    return {"solver": solver, **({"take_step": step} if step else {})}
 
 
 def config_dict(cfg: FitConfig) -> dict:

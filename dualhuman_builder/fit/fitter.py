@@ -29,7 +29,7 @@ import torch
 
 from dualhuman_builder.children import available_memory, cpu_count
 from dualhuman_builder.fit.actors import stance_mask
-from dualhuman_builder.fit.config import SOLVERS, FitConfig, config_dict
+from dualhuman_builder.fit.config import SOLVERS, TAKE_STEPS, FitConfig, config_dict
 from dualhuman_builder.fit.inputs import ActorInput, FitError, inputs_from_fused
 from dualhuman_builder.fit.layout import SegmentAnswer, cross_fade, layout
 from dualhuman_builder.fit.seams import apply_seams, fit_seam
@@ -86,6 +86,8 @@ def _fit_actors(model, inputs: list[ActorInput], fps: float, cfg: FitConfig, pro
     T = _frame_count(inputs)
     if cfg.solver not in SOLVERS:
         raise FitError(f"unknown fit solver {cfg.solver!r}; choose one of {', '.join(SOLVERS)}")
+    if cfg.take_step not in TAKE_STEPS:
+        raise FitError(f"unknown take solver step {cfg.take_step!r}; choose one of {', '.join(TAKE_STEPS)}")
     t_start = time.perf_counter()
     if cfg.solver == "take":
         inputs, offsets = _offsets_on_body(inputs, cfg, say)

@@ -95,14 +95,14 @@ class FitProblem:
         return [a.pose(ps[P * k][idx], ps[P * k + 1][idx], timeline_rows(psl, idx), True, ps[P * k + 2][idx])[1]
                 for k, a in enumerate(self.acts)]  # fmt: skip
 
-    def energy(self, ps: list, psl: slice, ctxs: list, afters: list) -> tuple:
-        """Both actors' skeleton energy (:func:`~dualhuman_builder.fit.energy.skeleton_energy`, at once) of
-        the corrections ``ps`` of timeline frames ``psl`` with the per-actor contexts ``ctxs`` before and
-        ``afters`` after them (each None or a context), and their driven bones' rotations (per actor,
-        ``(n, 23, 3, 3)``)."""
+    def energy(self, ps: list, psl: slice, ctxs: list, afters: list, per_frame: bool = False) -> tuple:
+        """Both actors' skeleton energy (:func:`~dualhuman_builder.fit.energy.skeleton_energy`, at once;
+        per frame ``(n,)`` with ``per_frame``) of the corrections ``ps`` of timeline frames ``psl`` with
+        the per-actor contexts ``ctxs`` before and ``afters`` after them (each None or a context), and
+        their driven bones' rotations (per actor, ``(n, 23, 3, 3)``)."""
         P = PARAMS_PER_ACTOR
         e, rot = skeleton_energy(self.stack, *(torch.stack(ps[j::P]) for j in range(P)), psl, stack_contexts(ctxs),
-                                 self.cfg, self.fps, stack_contexts(afters))  # fmt: skip
+                                 self.cfg, self.fps, stack_contexts(afters), per_frame)  # fmt: skip
         return e, rot.unbind(0)
 
     def skeleton_pass(self, ps: list, psl: slice, ctxs: list, afters: list) -> None:

@@ -46,6 +46,7 @@ import numpy as np
 import torch
 
 from dualhuman_builder.body.mapping import MVN_SEGMENTS
+from dualhuman_builder.fit.block_lbfgs import block_lbfgs, frame_blocks
 from dualhuman_builder.fit.collision_rounds import (MAX_RESTARTS, SMOOTH_REACH, STALL_SHARE, STUCK_SHARE, Diverged, all_finite,
                                                    dilate, restart_from_neighbours, restore, runs)
 from dualhuman_builder.fit.layout import SegmentAnswer
@@ -212,14 +213,13 @@ class TakeFitter(FitProblem):
         w = torch.as_tensor(cfg.collision_weight * mult[order], dtype=params[0].dtype, device=dev)
         frozen = np.ones(self.T, bool)
         frozen[rows] = False
-        frozen_t = torch.as_tensor(np.flatnonzero(frozen), device=dev) if frozen.any() else None
-        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.take_iterations, line_search_fn="strong_wolfe")
+        per_frame = cfg.take_step == "runs"
 
-        def closure():
-            if not all_finite(params):
-                raise Diverged
-            opt.zero_grad()
-            e, rots = self.energy(params, self.sl, self.none, self.none)
+        def add(e, first, n, term):  # the collision term of `order[first : first + n]`, `term (n,)`
+            return e.index_add(0, order_t[first : first + n], term) if per_frame else e + term.sum()
+
+        def energy():  # the round's energy: a 0-d tensor, or per frame (T,) for block_lbfgs
+            e, rots = self.energy(params, self.sl, self.none, self.none, per_frame=per_frame)
             if len(order):
                 posed = [a.rig.pose(rots[k].index_select(0, order_t), a.transl0[order_t] + params[P * k + 1].index_select(0, order_t),
                                     False, params[P * k + 2].index_select(0, order_t)) for k, a in enumerate(acts)]  # fmt: skip
@@ -228,25 +228,39 @@ class TakeFitter(FitProblem):
                     return lambda body, f, v: acts[body].rig.skin_at(posed[body], torch.as_tensor(f, device=dev) + first, v)
 
                 for first, n, lin in held:
-                    e = e + (w[first : first + n] * collide.linear_loss(lin, at(first), device=dev)).sum()
+                    e = add(e, first, n, w[first : first + n] * collide.linear_loss(lin, at(first), device=dev))
                 for c0 in range(0, len(exact_rows), CHUNK):
                     sub = exact_rows[c0 : c0 + CHUNK]
                     with torch.no_grad():
                         vs = [p.vertices for p in self.pose_bodies(params, self.sl, torch.as_tensor(sub, device=dev))]
                     first = len(held_rows) + c0
                     loss = collide(vs[0], vs[1], keys=sub, points=at(first)).loss
-                    e = e + (w[first : first + len(sub)] * loss).sum()
-            e.backward()
-            if frozen_t is not None:  # the held frames: no step
-                for q in params:
-                    if q.grad is not None:
-                        q.grad.index_fill_(0, frozen_t, 0.0)
+                    e = add(e, first, len(sub), w[first : first + len(sub)] * loss)
             return e
 
-        try:
-            opt.step(closure)
-        except Diverged:
-            pass
+        if per_frame:
+            block, energy_block, n_blocks = frame_blocks(~frozen, SMOOTH_REACH)
+            block_lbfgs(variables, energy, block, energy_block, n_blocks, cfg.take_iterations)
+        else:
+            frozen_t = torch.as_tensor(np.flatnonzero(frozen), device=dev) if frozen.any() else None
+            opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=cfg.take_iterations, line_search_fn="strong_wolfe")
+
+            def closure():
+                if not all_finite(params):
+                    raise Diverged
+                opt.zero_grad()
+                e = energy()
+                e.backward()
+                if frozen_t is not None:  # the held frames: no step
+                    for q in params:
+                        if q.grad is not None:
+                            q.grad.index_fill_(0, frozen_t, 0.0)
+                return e
+
+            try:
+                opt.step(closure)
+            except Diverged:
+                pass
         if not all_finite(params):
             restore(params, saved)
             return False

@@ -12,6 +12,8 @@ import torch
 from dualhuman_builder.body.model import get_body_model
 from dualhuman_builder.fit.fitter import ActorInput, FitConfig, FitError, fit_actors
 from dualhuman_builder.fit.collision_rounds import SMOOTH_REACH, dilate
+from dualhuman_builder.fit.config import solver_fields
+from dualhuman_builder.fit.energy import skeleton_energy
 from dualhuman_builder.fit.problem import PARAMS_PER_ACTOR
 from dualhuman_builder.fit.take import TakeFitter
 
@@ -38,13 +40,15 @@ def _step_in(T: int) -> list:
 CFG = FitConfig(solver="take", iterations=4, take_iterations=4, collision_rounds=3, hand_opening=False)
 
 
-def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model, monkeypatch):
+@pytest.mark.parametrize("step", ["shared", "runs"])
+def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_contact_alone(model, monkeypatch, step):
     """The collision rounds move the frames over a tolerance and the two on either side of them; every
     other frame keeps the skeleton pass's answer bit for bit (the fit without the collision term), and
-    the deepest penetration falls."""
+    the deepest penetration falls: with one L-BFGS run over the moving frames and with one per block."""
     T = 40
     inputs = _step_in(T)
-    off = fit_actors(model, inputs, FPS, dataclasses.replace(CFG, collision=False))
+    cfg = dataclasses.replace(CFG, take_step=step)
+    off = fit_actors(model, inputs, FPS, dataclasses.replace(cfg, collision=False))
     rounds = []
     real = TakeFitter._round
 
@@ -53,7 +57,7 @@ def test_the_take_solver_pushes_the_bodies_apart_and_leaves_the_frames_far_from_
         return real(self, rows, termed, mult, exact, variables)
 
     monkeypatch.setattr(TakeFitter, "_round", spy)
-    on = fit_actors(model, inputs, FPS, CFG)
+    on = fit_actors(model, inputs, FPS, cfg)
     s = on.summary
     assert s["segments"] == 1 and s["processes"] == 1 and s["seams_fitted_again"] == []
     hit = np.flatnonzero(on.frames["penetration depth (mm)/without collision term"] > 0)
@@ -158,6 +162,12 @@ def test_a_round_that_steps_to_non_finite_corrections_is_undone(model, monkeypat
 def test_an_unknown_solver_is_refused(model):
     with pytest.raises(FitError, match="unknown fit solver 'segments'"):
         fit_actors(model, _step_in(4), FPS, FitConfig(solver="segments"))
+    with pytest.raises(FitError, match="unknown take solver step 'each'; choose one of shared, runs"):
+        fit_actors(model, _step_in(4), FPS, FitConfig(solver="take", take_step="each"))
+    assert solver_fields("take:runs") == {"solver": "take", "take_step": "runs"} and solver_fields("take") == {"solver": "take"}
+    for bad in ("windows:runs", "take:each", "segments"):
+        with pytest.raises(ValueError, match=f"unknown fit solver '{bad}'; choose one of windows, take or take:shared"):
+            solver_fields(bad)
 
 
 def test_the_hands_pass_comes_first_and_moves_the_openings_alone(model, monkeypatch):
@@ -213,3 +223,27 @@ def test_the_contacts_a_measurement_located_serve_the_next_round(model, monkeypa
         assert np.array_equal(np.asarray(a.pose), np.asarray(b.pose))
         assert np.array_equal(np.asarray(a.transl), np.asarray(b.transl))
     assert n_kept < sum(located)
+
+
+def test_the_per_frame_skeleton_energy_sums_to_the_energy_and_each_frame_reads_its_neighbours_only(model):
+    """``per_frame``: the frames' energies (:func:`~dualhuman_builder.fit.energy.summer`) add up to the
+    summed energy, and moving frame 10 changes only frames 9-11 (second differences counted to their
+    middle frame, the sole's step to its later one), so a block of frames 2 or more apart from another
+    reads none of its variables (:func:`~dualhuman_builder.fit.block_lbfgs.frame_blocks`)."""
+    T = 20
+    fitter = TakeFitter(model, _step_in(T), FPS, dataclasses.replace(CFG, hand_opening=True))
+    torch.manual_seed(0)
+    ps = [(0.05 * torch.randn(T, *shape)) for _ in fitter.acts for shape in ((23, 3), (3,), (4,))]
+    sl, none = slice(0, T), [None, None]
+    with torch.no_grad():
+        total = fitter.energy(ps, sl, none, none)[0]
+        frames = fitter.energy(ps, sl, none, none, per_frame=True)[0]
+        assert frames.shape == (T,) and float(frames.sum()) == pytest.approx(float(total), rel=1e-5)
+        for p in ps:
+            p[10] += 0.05
+        moved = fitter.energy(ps, sl, none, none, per_frame=True)[0]
+    changed = np.flatnonzero((moved != frames).numpy())
+    assert changed.tolist() == [9, 10, 11]
+    with pytest.raises(ValueError, match="no context"):
+        skeleton_energy(fitter.stack, *(torch.stack(ps[j::3]) for j in range(3)), sl, ("a context",), fitter.cfg, FPS,
+                        per_frame=True)  # fmt: skip
