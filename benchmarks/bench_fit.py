@@ -28,11 +28,12 @@ largest worker process's (as it reports it).
     .venv/bin/python benchmarks/bench_fit.py --minutes 1 --collision held --workers 1,auto
 
 ``--solver windows,take`` fits each mode with the window solver (the default fit) and with the
-whole take as one problem (``FitConfig.solver``, one process), side by side; each row has its joint
+whole take as one problem (``FitConfig.solver``, one process), side by side; ``take:shared`` and
+``take:runs`` name the take solver's two steps (``FitConfig.take_step``). Each row has its joint
 error against the ground truth (mm):
 
-    .venv/bin/python benchmarks/bench_fit.py --inputs /tmp/hug1.npz --collision held --solver windows,take \
-        --out benchmarks/results/fit_solvers.json
+    .venv/bin/python benchmarks/bench_fit.py --inputs /tmp/hug1.npz --collision held \
+        --solver windows,take:shared,take:runs --out benchmarks/results/fit_solvers.json
 
 The take's inputs can be written once and read back (``--save-inputs FILE.npz``, ``--inputs
 FILE.npz``), so that a machine without the scene generator's time to spare (a lent GPU) fits the

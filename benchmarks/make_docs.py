@@ -51,17 +51,22 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("fit", "benchmarks/bench_fit.py --minutes 1 --collision held --runs 1 --workers 1,auto", ""),
     ("fit_cuda", "benchmarks/bench_fit.py --inputs HUG.npz --device cuda --collision held --runs 1",
      "on a machine with a CUDA GPU; HUG.npz from `bench_fit.py --minutes 1 --save-inputs HUG.npz --runs 0`"),
-    ("fit_solvers", "benchmarks/bench_fit.py --collision held --solver windows,take --out benchmarks/results/fit_solvers.json",
+    ("fit_solvers", "benchmarks/bench_fit.py --collision held --solver windows,take:shared,take:runs "
+     "--out benchmarks/results/fit_solvers.json",
      ""),
     ("fit_accuracy", "benchmarks/bench_fit_accuracy.py --keep TAKES",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_take", "benchmarks/bench_fit_accuracy.py --keep TAKES --solver take",
+     "with TAKES the folder of `fit_accuracy`'s run (the same recordings)"),
+    ("fit_accuracy_take_runs", "benchmarks/bench_fit_accuracy.py --keep TAKES --solver take:runs",
      "with TAKES the folder of `fit_accuracy`'s run (the same recordings)"),
     ("fit_accuracy_calibrated", "benchmarks/bench_fit_accuracy.py --keep TAKES --calibration",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_realistic", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
     ("fit_accuracy_realistic_take", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --solver take",
+     "with TAKES the folder of `fit_accuracy_realistic`'s run (the same recordings)"),
+    ("fit_accuracy_realistic_take_runs", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --solver take:runs",
      "with TAKES the folder of `fit_accuracy_realistic`'s run (the same recordings)"),
     ("fit_accuracy_realistic_no_trackers", "benchmarks/bench_fit_accuracy.py --keep TAKES --preset realistic --no-trackers",
      "with TAKES a folder that keeps the recordings (a later run scores the same ones)"),
@@ -85,6 +90,11 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "with TAKES a folder that keeps the tuning seeds' recordings"),
     ("probe_fit_spread", "benchmarks/probes/probe_fit_spread.py --keep TAKES",
      "with TAKES the folder of `fit_accuracy_realistic`'s run (its recording is the first of five)"),
+    ("probe_fit_spread_take_step", "benchmarks/probes/probe_fit_spread.py --keep TAKES --solver take:shared,take:runs,windows "
+     "--out benchmarks/results/probe_fit_spread_take_step.json", "with TAKES the folder of `probe_fit_spread`'s run (the same five recordings)"),
+    ("probe_fit_rules", "benchmarks/probes/probe_fit_rules.py --inputs HUG.npz --runs 2",
+     "on an otherwise idle machine (12 fits of half a minute: about 20 minutes on 2 cores); HUG.npz from "
+     "`bench_fit.py --minutes 1 --save-inputs HUG.npz --runs 0`"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
@@ -92,8 +102,10 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
 
 ACCURACY = (("fit_accuracy", "Ideal devices, without a calibration take"),
             ("fit_accuracy_take", "Ideal devices, the take solver (`fit --solver take`), on the first table's recordings"),
+            ("fit_accuracy_take_runs", "Ideal devices, the take solver with a step per run of frames (`--take-step runs`), on the first table's recordings"),
             ("fit_accuracy_realistic", "Realistic devices (every error drawn per take), without a calibration take"),
             ("fit_accuracy_realistic_take", "Realistic devices, the take solver, on the table above's recordings"),
+            ("fit_accuracy_realistic_take_runs", "Realistic devices, the take solver with a step per run of frames, on the same recordings"),
             ("fit_accuracy_realistic_no_trackers", "Realistic devices, the fit without trackers (what they buy)"),
             ("fit_accuracy_calibrated", "Ideal devices, with the studio day's calibration take"))  # fmt: skip
 

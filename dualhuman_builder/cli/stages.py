@@ -110,10 +110,10 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
                    "faster on long takes on a CPU); take: the whole take as one problem in one process, with a "
                    "per-frame collision schedule, about as accurate on the accuracy tables (--window and "
                    "--workers do not apply).")
-@click.option("--take-step", type=click.Choice(["shared", "runs"]), default=None,
+@click.option("--take-step", type=click.Choice(["shared", "runs"]), default="shared", show_default=True,
               help="With --solver take, how its collision passes step: shared, one L-BFGS run over every moving "
                    "frame; runs, each run of moving frames its own L-BFGS run (own step length), all evaluated "
-                   "at once. Default: FitConfig.take_step.")
+                   "at once.")
 @click.option("--device", default="cpu", show_default=True,
               help="torch device for the fit, e.g. cuda. Prefer the CPU even where a GPU is: the fit's many small "
                    "tensor operations gain little on a GPU, and a GPU fit runs in one process (no --workers).")
@@ -125,7 +125,7 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
                    "CPU, no more than there are segments (two windows each) or than leave ~2 GiB of available memory "
                    "each; 1 on a GPU. The result does not depend on it.")
 def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain: bool, mounts_from: str | None, force: bool,
-        no_collision: bool, relaxed_hands: bool, exact_contacts: bool, window: int, solver: str, take_step: str | None,
+        no_collision: bool, relaxed_hands: bool, exact_contacts: bool, window: int, solver: str, take_step: str,
         device: str, threads: int, workers: int | None):  # fmt: skip
     """Fit both actors' anny bodies to a take, jointly.
 
@@ -151,7 +151,7 @@ def fit(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chain
 
     cfg = FitConfig(collision=not no_collision, hand_opening=not relaxed_hands, collision_hold_contacts=not exact_contacts,
                     window=window, solver=solver, device=device, torch_threads=threads,
-                    **({"take_step": take_step} if take_step else {}))  # fmt: skip
+                    take_step=take_step)  # fmt: skip
     with Workspace.open(workspace) as ws:
         res = run_fit(ws, take, cfg, force=force, log=console.print, fps=fps, use_trackers=not no_trackers,
                       suit_chain=not no_suit_chain, workers=workers, mounts_from=mounts_from)  # fmt: skip

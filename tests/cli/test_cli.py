@@ -298,3 +298,22 @@ def test_the_scene_type_choices_are_the_generators():
     from dualhuman_builder.sim.scenes import ALL_TYPES
 
     assert tuple(SCENE_TYPES) == tuple(ALL_TYPES)
+
+
+def test_fit_passes_the_solver_and_its_step_to_the_fit(tmp_path, monkeypatch):
+    """``fit --solver take --take-step runs`` reaches :class:`FitConfig` as both fields (the stage itself
+    is tested in tests/fit); the step defaults to ``shared``."""
+    from dualhuman_builder.fit import stage
+
+    seen = []
+
+    class Done:
+        skipped, artifacts = True, {}
+
+    monkeypatch.setattr(stage, "run_fit", lambda ws, take, cfg, **kw: seen.append(cfg) or Done())
+    monkeypatch.setattr(cli.stages, "_made_stale", lambda res: None)
+    ws = tmp_path / "ws"
+    run("init", ws)
+    run("fit", ws, "--take", "T", "--solver", "take", "--take-step", "runs")
+    run("fit", ws, "--take", "T", "--solver", "take")
+    assert [(c.solver, c.take_step) for c in seen] == [("take", "runs"), ("take", "shared")]
