@@ -14,9 +14,12 @@ every term touching a block's variables lands on a frame of that block's *energy
 :func:`frame_blocks`). Variables are tensors whose first axis is the timeline frame; only rows ``rows``
 move. Mirrors ``torch.optim.LBFGS``'s defaults (first step ``min(1, 1 / |g|_1)``, history 100,
 ``tolerance_grad`` 1e-7, ``tolerance_change`` 1e-9, each block's evaluations at most 5/4 of the
-iterations: counted per block, so that no block's answer depends on another's) with a
-backtracking line search (sufficient decrease, quadratic interpolation) instead of strong Wolfe: the
-Wolfe zoom needs per-block brackets, and a block whose curvature pair fails ``y.s > 0`` just skips it.
+iterations: counted per block, so that no block's answer depends on another's). The line search is
+per block: a step that does not decrease the energy enough (Armijo) shrinks by quadratic
+interpolation; a first step that does, but leaves the slope steeper than ``C2`` of the start's (strong
+Wolfe's curvature condition unmet), grows ``EXPAND`` times while the energy keeps falling, as torch's
+strong Wolfe search extrapolates. Its zoom, which needs a bracket per block, is left out; a block whose
+curvature pair fails ``y.s > 0`` just skips that pair.
 """
 
 from __future__ import annotations
@@ -30,6 +33,12 @@ import torch
 C1 = 1e-4
 #: backtracking steps per iteration at most; a block that finds no decrease in them stops
 MAX_BACKTRACKS = 10
+#: the curvature condition's constant (strong Wolfe's c2, as torch's): a block whose first trial step
+#: leaves the slope along its direction steeper than this share of the start's tries a longer one
+C2 = 0.9
+#: a longer step is this many times the last accepted one, at most ``MAX_EXPANSIONS`` times per iteration
+EXPAND = 4.0
+MAX_EXPANSIONS = 4
 
 
 def frame_blocks(moving: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -71,11 +80,12 @@ def _block_max(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tenso
 
 
 def block_lbfgs(variables: list, evaluate: Callable[[], torch.Tensor], block: np.ndarray, energy_block: np.ndarray,
-                n_blocks: int, max_iter: int, history: int = 100, tolerance_grad: float = 1e-7,
+                n_blocks: int, max_iter: int, max_eval: int | None = None, history: int = 100, tolerance_grad: float = 1e-7,
                 tolerance_change: float = 1e-9) -> dict:
     """Minimise the energy ``evaluate()`` (per frame, ``(T,)``; see the module docstring) over the rows
     ``block >= 0`` of ``variables`` (tensors ``(T, ...)``, moved in place), each block of
-    :func:`frame_blocks` its own L-BFGS run, every evaluation shared. A trial whose energy is not finite
+    :func:`frame_blocks` its own L-BFGS run, every evaluation shared; each block stops after ``max_iter``
+    iterations or ``max_eval`` evaluations (default ``max_iter * 5 // 4``, torch's). A trial whose energy is not finite
     counts as no decrease (the step shrinks). Returns ``{"iterations", "evaluations", "energy" (n,)
     per block at the end, "stopped" (n,) bool: the blocks that met a stopping test}``."""
     dev = variables[0].device
@@ -111,7 +121,7 @@ def block_lbfgs(variables: list, evaluate: Callable[[], torch.Tensor], block: np
     with torch.no_grad():
         x = flat([p.detach() for p in variables]).clone()
     f, g = at(x)
-    evals, max_eval = 1, max_iter * 5 // 4
+    evals, max_eval = 1, max_iter * 5 // 4 if max_eval is None else max_eval
     spent = torch.ones(n, dtype=torch.int64, device=dev)  # per block, the evaluations it has tried steps in
     active = _block_max(g.abs().amax(1), rb, n) > tolerance_grad
     S, Y, rho = [], [], []
@@ -139,7 +149,7 @@ def block_lbfgs(variables: list, evaluate: Callable[[], torch.Tensor], block: np
             t = torch.clamp(1.0 / _per_block(g.abs().sum(1), rb, n).clamp_min(1e-30), max=1.0)
         pending, accepted = active.clone(), torch.zeros_like(active)
         f_new, g_new = f.clone(), g.clone()
-        for _ in range(MAX_BACKTRACKS):
+        for i_ls in range(MAX_BACKTRACKS):
             step = torch.where(pending | accepted, t, torch.zeros_like(t))
             f_try, g_try = at(x + step[rb, None] * d)
             evals += 1
@@ -150,6 +160,8 @@ def block_lbfgs(variables: list, evaluate: Callable[[], torch.Tensor], block: np
                 g_new = torch.where(ok[rb, None], g_try, g_new)
             accepted |= ok
             pending &= ~ok
+            if i_ls == 0:  # blocks whose first trial decreased enough but still descend steeply: a longer step
+                grow = ok & (dot(g_try, d) < C2 * gtd)
             pending &= spent < max_eval
             if not bool(pending.any()):
                 break
@@ -157,6 +169,19 @@ def block_lbfgs(variables: list, evaluate: Callable[[], torch.Tensor], block: np
             curv = f_try - f - gtd * t
             t_q = torch.where(torch.isfinite(curv) & (curv > 0), -gtd * t * t / (2 * curv.clamp_min(1e-30)), 0.1 * t)
             t = torch.where(pending, torch.minimum(torch.maximum(t_q, 0.1 * t), 0.5 * t), t)
+        for _ in range(MAX_EXPANSIONS):  # the strong Wolfe search's extrapolation, per block
+            grow &= spent < max_eval
+            if not bool(grow.any()):
+                break
+            t_try = torch.where(grow, t * EXPAND, t)
+            f_try, g_try = at(x + torch.where(accepted, t_try, torch.zeros_like(t))[rb, None] * d)
+            evals += 1
+            spent += grow
+            ok = grow & torch.isfinite(f_try) & (f_try <= f + C1 * t_try * gtd) & (f_try < f_new)
+            f_new = torch.where(ok, f_try, f_new)
+            g_new = torch.where(ok[rb, None], g_try, g_new)
+            t = torch.where(ok, t_try, t)
+            grow = ok & (dot(g_try, d) < C2 * gtd)
         step = torch.where(accepted, t, torch.zeros_like(t))
         s = step[rb, None] * d
         y = g_new - g

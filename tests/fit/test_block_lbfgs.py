@@ -98,3 +98,15 @@ def test_a_step_to_a_non_finite_energy_shrinks_instead_of_diverging():
     assert torch.isfinite(x).all() and (x < 1).all()
     with torch.no_grad():
         assert float(energy().sum()) < start
+
+
+def test_a_first_step_that_still_descends_steeply_grows():
+    """The first iteration's step is scaled by the gradient (``min(1, 1 / |g|_1)``, as torch's): here a
+    move of 1/15 of the way to a steep quadratic's minimum, where the slope is still 14/15 of the
+    start's. The line search extrapolates it (as a strong Wolfe search does) until the slope has
+    flattened past ``C2``: four times as far."""
+    moving = np.ones(5, bool)
+    x = torch.zeros(5, 3, requires_grad=True)
+    info = block_lbfgs([x], lambda: 1e3 * ((x - 1.0) ** 2).sum(1), *frame_blocks(moving, 2), max_iter=1, max_eval=10)
+    assert info["iterations"] == 1 and info["evaluations"] > 2
+    assert torch.allclose(x.detach(), torch.full((5, 3), 4 / 15))
