@@ -67,6 +67,12 @@ from results_file import Goal, Table, write_results  # noqa: E402
 GOAL_PAIRS_PER_S = 30.0
 
 
+#: the inputs' skeleton is anny's own (``ActorInput.skeleton_rms_m`` 0): the trackers sit at the segment
+#: origins the suit's segments report, so the fit keeps their offsets as given instead of weighing them
+#: with the capture protocol's sites (``fit/mounts.py``), which would put them centimetres from where they are
+ANNY_SKELETON = 0.0
+
+
 def inputs(model, minutes: float, fps: float, truth: list | None = None):
     """The benchmark take's ActorInputs (``T = minutes * 60 * fps`` frames); with a list ``truth``,
     each actor's ground-truth joints ``(T, 22, 3)`` (m) are appended to it."""
@@ -90,7 +96,8 @@ def inputs(model, minutes: float, fps: float, truth: list | None = None):
         out.append(ActorInput(track.actor, {k: float(v) for k, v in zip(model.shape_names, track.shape)},
                               np.asarray(sk.orientations)[idx], pos[:, 0], np.ones(T, bool), pos[:, tracked],
                               np.ones((T, 6), bool), np.array(tracked), np.zeros((6, 3)),
-                              pos[:, [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]]))  # fmt: skip
+                              pos[:, [MVN_SEGMENTS.index("LeftFoot"), MVN_SEGMENTS.index("RightFoot")]],
+                              skeleton_rms_m=ANNY_SKELETON))  # fmt: skip
     return out
 
 
@@ -120,7 +127,7 @@ def load_inputs(path: str) -> tuple[list, list, float]:
         inp, truth = [], []
         for k in range(int(z["actors"])):
             shape = {str(n): float(v) for n, v in zip(z[f"{k}_shape_names"], z[f"{k}_shape_values"])}
-            inp.append(ActorInput(str(z[f"{k}_name"]), shape, **{f: z[f"{k}_{f}"] for f in _ARRAYS}))
+            inp.append(ActorInput(str(z[f"{k}_name"]), shape, **{f: z[f"{k}_{f}"] for f in _ARRAYS}, skeleton_rms_m=ANNY_SKELETON))
             truth.append(z[f"{k}_truth"])
         return inp, truth, float(z["fps"])
 
