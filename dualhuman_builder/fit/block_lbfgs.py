@@ -11,8 +11,8 @@ frames at once: one batched program, which is what a GPU needs.
 Contract of the objective: ``evaluate()`` sets nothing, reads the variables as they are, and returns the
 energy per timeline frame ``(T,)`` (a term spanning several frames assigned to one of them, so that
 every term touching a block's variables lands on a frame of that block's *energy rows*: see
-:func:`frame_blocks`). Variables are tensors whose first axis is the timeline frame; only rows ``rows``
-move. Mirrors ``torch.optim.LBFGS``'s defaults (first step ``min(1, 1 / |g|_1)``, history 100,
+:func:`frame_blocks`). Variables are tensors whose first axis is the timeline frame; only the frames of
+a block move. Mirrors ``torch.optim.LBFGS``'s defaults (first step ``min(1, 1 / |g|_1)``, history 100,
 ``tolerance_grad`` 1e-7, ``tolerance_change`` 1e-9, each block's evaluations at most 5/4 of the
 iterations: counted per block, so that no block's answer depends on another's). The line search is
 per block: a step that does not decrease the energy enough (Armijo) shrinks by quadratic
