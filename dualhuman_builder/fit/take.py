@@ -17,7 +17,9 @@ corrections are one set of tensors, and the schedule is per frame instead of per
    planes through the round, :meth:`~dualhuman_builder.geometry.collision.CollisionTerm.linearise`)
    and moves them and the ``SMOOTH_REACH`` frames on either side with one L-BFGS run of
    ``cfg.take_iterations`` iterations (more than a window's ``collision_iterations``: the frames share
-   the run's curvature pairs and step length); settled frames keep their term and hold still. A frame
+   the run's curvature pairs and step length), or with ``cfg.take_step = "runs"`` one run per block of
+   those frames, evaluated together (:mod:`~dualhuman_builder.fit.block_lbfgs`); settled frames keep
+   their term and hold still. A frame
    the round leaves over ``collision_tolerance_m`` and deeper than its best answer so far goes back to
    that answer (the window solver's undo of a round, per frame). A frame a
    held round left stalled (no shallower than ``STALL_SHARE`` of its depth) is located at every
@@ -198,11 +200,12 @@ class TakeFitter(FitProblem):
             say(f"{label}{int(stuck.sum())} frames stuck, {int(move.sum())} restarted from their neighbours")
 
     def _round(self, rows: np.ndarray, termed: np.ndarray, mult: np.ndarray, exact: np.ndarray, variables: list) -> bool:
-        """One collision pass: L-BFGS over ``variables`` (the openings alone in the hands' pass, else the
-        bones' corrections too) at frames ``rows`` (the others held), on the skeleton energy plus
-        ``collision_weight`` x ``mult`` times the collision term of frames ``termed`` (held planes located
-        here, or located at every evaluation where ``exact``). False (the corrections restored) when the
-        line search stepped to non-finite values."""
+        """One collision pass: L-BFGS (one run, or one per block of ``rows`` by ``cfg.take_step``) over
+        ``variables`` (the openings alone in the hands' pass, else the bones' corrections too) at frames
+        ``rows`` (the others held), on the skeleton energy plus ``collision_weight`` x ``mult`` times the
+        collision term of frames ``termed`` (held planes located here, or located at every evaluation
+        where ``exact``). False (the corrections restored) when the line search stepped to non-finite
+        values."""
         cfg, dev, collide, acts, P = self.cfg, self.dev, self.collide, self.acts, PARAMS_PER_ACTOR
         params = self.params
         saved = [p.detach().clone() for p in params]
