@@ -94,7 +94,7 @@ def main():
               f"max penetration {s['max_penetration_after_mm']:.2f} mm", flush=True)  # fmt: skip
     cols = ["switched off", "frame pairs/s", "x default", "joint error (mm)", "max penetration (mm)"]
     rows = [[f"{r}: {RULES[r][0]}"] + [f"{r}.{k}" for k in ("pairs_per_s", "x_default", "mpjpe_mm", "max_penetration_mm")] for r in rules]
-    path = write_results("probe_fit_rules", figures,
+    path = write_results(args.out.stem if args.out else "probe_fit_rules", figures,
                          params={"inputs": Path(args.inputs).name, "minutes": args.minutes, "runs": args.runs, "rules": rules},
                          tables=[Table(f"The window solver's rules, each switched off, on {T} frame pairs of the hug (1 process)",
                                        cols, rows)],

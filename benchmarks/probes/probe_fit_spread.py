@@ -106,7 +106,7 @@ def main():
     groups = [*solvers, *diffs]
     cols = ["column"] + [f"{g} {stat}" for g in groups for stat in ("mean", "std")]
     table_rows = [[label] + [f"{g}.{stat}.{c}" for g in groups for stat in ("mean", "std")] for c, (label, _, _) in COLUMNS.items()]
-    path = write_results("probe_fit_spread", figures,
+    path = write_results(args.out.stem if args.out else "probe_fit_spread", figures,
                          params={"type": args.type, "seed": args.seed, "preset": args.preset, "recordings": args.recordings,
                                  "solvers": solvers, "fps": args.fps},
                          tables=[Table(f"Run-to-run spread over {args.recordings} recordings of one take "
