@@ -106,6 +106,11 @@ _ARRAYS = ("seg_rot", "pelvis", "valid", "trk_pos", "trk_valid", "trk_segment", 
 _PER_FRAME = tuple(f for f in _ARRAYS if f not in ("trk_segment", "trk_offset"))
 
 
+def first_frames(inp: list, n: int) -> list:
+    """The ActorInputs ``inp`` cut to their first ``n`` frames."""
+    return [dataclasses.replace(a, **{f: getattr(a, f)[:n] for f in _PER_FRAME}) for a in inp]
+
+
 def save_inputs(path: str, inp: list, truth: list, fps: float) -> None:
     """Write the benchmark take (``inputs``' ActorInputs and ground-truth joints) to ``path`` (.npz)."""
     arrays = {"fps": np.float64(fps), "actors": np.int64(len(inp))}
@@ -219,7 +224,7 @@ def main():
         inp, truth, args.fps = load_inputs(args.inputs)
         if args.minutes is not None:  # the file's first frames
             n = int(args.minutes * 60 * args.fps)
-            inp = [dataclasses.replace(a, **{f: getattr(a, f)[:n] for f in _PER_FRAME}) for a in inp]
+            inp = first_frames(inp, n)
             truth = [gt[:n] for gt in truth]
         args.minutes = len(inp[0].seg_rot) / args.fps / 60
     else:

@@ -66,6 +66,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from dualhuman_builder.fit.config import SOLVERS, TAKE_STEPS  # noqa: E402
 from results_file import Goal, Table, write_results  # noqa: E402
 
 #: The goals, each an upper bound on a column's worst take ...
@@ -192,7 +193,7 @@ def main() -> None:
                     help="keep the recordings in this folder, and score those already there instead of recording again")
     ap.add_argument("--compare-exact", action="store_true",
                     help="also fit each take with the collision contacts located at every evaluation (time and MPJPE)")
-    ap.add_argument("--solver", choices=("windows", "take", "take:shared", "take:runs"), default="windows",
+    ap.add_argument("--solver", choices=SOLVERS + tuple(f"take:{s}" for s in TAKE_STEPS), default="windows",
                     help="the fit's solver (FitConfig.solver; take:<step> sets FitConfig.take_step too); take writes "
                          "fit_accuracy[...]_take.json, take:<step> fit_accuracy[...]_take_<step>.json")
     ap.add_argument("--no-trackers", action="store_true",

@@ -22,7 +22,6 @@ Writes ``benchmarks/results/probe_fit_rules.json`` (``--out`` elsewhere).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import statistics
 import sys
 from pathlib import Path
@@ -30,7 +29,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: results_file, bench_fit
 
-from bench_fit import _PER_FRAME, joint_error, load_inputs  # noqa: E402
+from bench_fit import first_frames, joint_error, load_inputs  # noqa: E402
 from results_file import Table, write_results  # noqa: E402
 
 #: rule -> (what switching it off means, the FitConfig fields that do it)
@@ -67,14 +66,13 @@ def main():
 
     inp, truth, fps = load_inputs(args.inputs)
     n = int(args.minutes * 60 * fps)
-    inp = [dataclasses.replace(a, **{f: getattr(a, f)[:n] for f in _PER_FRAME}) for a in inp]
+    inp = first_frames(inp, n)
     truth = [gt[:n] for gt in truth]
     T = len(inp[0].seg_rot)
     model = get_body_model()
     torch.set_num_threads(FitConfig().torch_threads)
     print(f"take: {T} frame pairs at {fps:g} fps from {args.inputs}; window solver, 1 process", flush=True)
-    warm = [dataclasses.replace(a, **{f: getattr(a, f)[:60] for f in _PER_FRAME}) for a in inp]
-    fit_actors(model, warm, fps, FitConfig(), workers=1)  # not timed: the first fit of a process builds caches
+    fit_actors(model, first_frames(inp, 60), fps, FitConfig(), workers=1)  # not timed: the first fit of a process builds caches
     rates: dict[str, list[float]] = {r: [] for r in rules}
     last: dict = {}
     for i in range(args.runs):

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from dualhuman_builder.cli.app import console, main
+from dualhuman_builder.fit.config import SOLVERS, TAKE_STEPS
 
 
 def _made_stale(res) -> None:
@@ -105,12 +106,12 @@ def fuse(workspace: Path, take: str, fps: float, no_trackers: bool, no_suit_chai
               help="Locate the collision contacts at every L-BFGS evaluation instead of holding them through each pass "
                    "(the default falls back to this where held contacts stall; slower; for comparison).")
 @click.option("--window", type=click.IntRange(min=4), default=48, show_default=True, help="Frames optimised together.")
-@click.option("--solver", type=click.Choice(["windows", "take"]), default="windows", show_default=True,
+@click.option("--solver", type=click.Choice(SOLVERS), default="windows", show_default=True,
               help="windows: windows of --window frames one after another, segments on --workers processes (the "
                    "faster on long takes on a CPU); take: the whole take as one problem in one process, with a "
                    "per-frame collision schedule, about as accurate on the accuracy tables (--window and "
                    "--workers do not apply).")
-@click.option("--take-step", type=click.Choice(["shared", "runs"]), default="shared", show_default=True,
+@click.option("--take-step", type=click.Choice(TAKE_STEPS), default="shared", show_default=True,
               help="With --solver take, how its collision passes step: shared, one L-BFGS run over every moving "
                    "frame; runs, each run of moving frames its own L-BFGS run (own step length), all evaluated "
                    "at once.")

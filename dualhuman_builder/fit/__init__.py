@@ -6,6 +6,7 @@ per take (:mod:`.calibrate`); fitting retargets segment orientations onto anny b
 ``rigs/mvn_anny.toml`` and refines both actors jointly over windows of frames with an SDF collision
 term (:mod:`.fitter`, the entry point; its parts: :mod:`.config`, :mod:`.inputs`, :mod:`.actors`,
 :mod:`.energy`, :mod:`.problem`, :mod:`.segment`, :mod:`.collision_rounds`, :mod:`.layout`,
-:mod:`.seams`, :mod:`.workers`). :mod:`.process` runs the whole path on a take in memory;
+:mod:`.seams`, :mod:`.workers`; the whole take as one problem instead: :mod:`.take`, its batched
+per-block L-BFGS :mod:`.block_lbfgs`). :mod:`.process` runs the whole path on a take in memory;
 :mod:`.stage` runs it as workspace stages; :mod:`.report` draws the fit's report.
 """
