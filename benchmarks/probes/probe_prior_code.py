@@ -38,21 +38,25 @@ from bench_reaction_prior import _refinement, _test_sequences  # noqa: E402
 from results_file import Table, write_results  # noqa: E402
 
 #: ``--vae`` items: ``<latent>x<layers>`` with the feed-forward width twice the latent (MLD's ratio is 4;
-#: 2 is the CPU default's), optionally ``@<vae_steps>``.
+#: 2 is the CPU default's), optionally ``t<tokens>`` (``latent_tokens``, MLD's latent_size) and ``@<vae_steps>``.
 DEFAULT_VAES = "64x2,64x2@8000,128x2,128x2@6000,256x2"
 DEFAULT_DCTS = "1,2,4,8,16"
 
 
 def parse_vae(item: str) -> dict:
-    """``"128x2@6000"`` -> the config overrides of that VAE (``latent_dim``, ``layers``, ``ff``, ``vae_steps``)."""
+    """``"64x2t8@6000"`` -> the config overrides of that VAE (``latent_dim``, ``layers``, ``ff``, and
+    ``latent_tokens`` and ``vae_steps`` where given)."""
     size, _, steps = item.partition("@")
-    latent, _, layers = size.partition("x")
+    latent, _, rest = size.partition("x")
+    layers, _, tokens = rest.partition("t")
     try:
         out = {"latent_dim": int(latent), "layers": int(layers), "ff": 2 * int(latent)}
+        if tokens:
+            out["latent_tokens"] = int(tokens)
         if steps:
             out["vae_steps"] = int(steps)
     except ValueError:
-        raise SystemExit(f"--vae item {item!r} is not <latent>x<layers>[@<steps>], e.g. 128x2@6000") from None
+        raise SystemExit(f"--vae item {item!r} is not <latent>x<layers>[t<tokens>][@<steps>], e.g. 64x2t8@6000") from None
     return out
 
 
@@ -84,7 +88,7 @@ def _train_and_score(job: tuple) -> dict:
     rec = np.concatenate([x for x, _ in clean])
     proj = _refinement(module, seqs, module.config, window, c["iterations"], 0.0, "cpu")
     vae = summary.get("phases", {}).get("vae", {})
-    out = {"code_size": int(module.codec.latent_dim),
+    out = {"code_size": int(module.code_dim),
            "recon": {"mpjpe_mm": metrics.mpjpe(rec, t), "pa_mpjpe_mm": metrics.pa_mpjpe(rec, t),
                      "translation_mm": metrics.translation_error(rec, t)},
            "projection": {"before_mpjpe_mm": proj["before"]["mpjpe_mm"], "mpjpe_mm": proj["after"]["mpjpe_mm"],
@@ -100,7 +104,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--export", type=Path, required=True, help="a dataset export with a train split (fit/validation)")
     ap.add_argument("--work", type=Path, required=True, help="folder of the probe's runs (a finished run is kept)")
-    ap.add_argument("--vae", default=DEFAULT_VAES, help=f"VAEs: <latent>x<layers>[@<vae_steps>], comma-separated (default {DEFAULT_VAES})")
+    ap.add_argument("--vae", default=DEFAULT_VAES, help=f"VAEs: <latent>x<layers>[t<tokens>][@<vae_steps>], comma-separated (default {DEFAULT_VAES})")
     ap.add_argument("--dct", default=DEFAULT_DCTS, help=f"DCT codes: coefficients kept per coordinate (default {DEFAULT_DCTS})")
     ap.add_argument("--split", default="validation", choices=("validation", "fit"), help="the reactors scored")
     ap.add_argument("--iterations", type=int, default=100, help="refinement steps per window (the benchmark's)")

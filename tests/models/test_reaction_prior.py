@@ -183,7 +183,7 @@ def _train(spec, module, phase: str, batch: dict, steps: int, lr: float = 3e-3) 
 
 
 @pytest.mark.parametrize("overrides", [{}, {"mapper": "mlp"}, {"use_vae": False, "noise_augment": False},
-                                       {"representation": "features"}])
+                                       {"representation": "features"}, {"latent_tokens": 3}])
 def test_losses_fall_on_constructed_windows(overrides):
     torch.manual_seed(0)
     spec = get_model("reaction-prior")
@@ -204,6 +204,27 @@ def test_losses_fall_on_constructed_windows(overrides):
                 assert torch.equal(p, frozen[n]), n
     assert int(module.norm.ready) == min(cfg["stats_batches"], 40)
     assert module.norm.std.min() >= 0.01
+
+
+def test_a_vae_of_several_tokens_codes_each_window_in_all_of_them():
+    """MLD's latent_size: ``tokens`` codes of latent_dim numbers, flattened; the decoder reads every one."""
+    from dualhuman_builder.models.reaction_prior.vae import MotionVAE
+
+    torch.manual_seed(0)
+    one, three = MotionVAE(6, 8, 1, 2, 16, 0.0), MotionVAE(6, 8, 1, 2, 16, 0.0, tokens=3)
+    assert (one.code_dim, three.code_dim) == (8, 24)
+    x = torch.randn(2, 10, 6)
+    mu, logvar = three.encode(x)
+    assert mu.shape == logvar.shape == (2, 24)
+    for part in range(3):  # moving any one token's numbers changes the decoding
+        z = mu.detach().clone()
+        z[:, 8 * part : 8 * part + 8] += 1.0
+        assert not torch.allclose(three.decode(z, 10), three.decode(mu, 10), atol=1e-4)
+    spec = get_model("reaction-prior")
+    module = spec.build({**spec.default_config(), **TINY, "latent_tokens": 2})
+    assert module.code_dim == 2 * TINY["latent_dim"]
+    with pytest.raises(ValueError, match="at least one latent token"):
+        MotionVAE(6, 8, tokens=0)
 
 
 @pytest.mark.parametrize("representation", ["joints", "features"])

@@ -57,6 +57,7 @@ DEFAULTS: dict[str, Any] = {
     "representation": "joints",
     "features_fps": 20.0,
     "latent_dim": 64,
+    "latent_tokens": 1,
     "layers": 2,
     "heads": 4,
     "ff": 128,
@@ -86,7 +87,8 @@ DEFAULTS: dict[str, Any] = {
     "vae_from": None,
 }
 #: Config keys that shape the motion VAE and its normalisation: a run given as ``vae_from`` must share them.
-VAE_KEYS = ("window", "representation", "features_fps", "latent_dim", "layers", "heads", "ff", "dropout", "stats_batches")
+VAE_KEYS = ("window", "representation", "features_fps", "latent_dim", "latent_tokens", "layers", "heads", "ff", "dropout",
+            "stats_batches")
 
 class ReactionPrior(nn.Module):
     """Normaliser + motion code (VAE or, ablated, DCT) + generator (INN or, ablated, MLP).
@@ -110,10 +112,10 @@ class ReactionPrior(nn.Module):
         self.norm = Normalizer(feats, int(c["stats_batches"]))
         if c["use_vae"]:
             self.codec: nn.Module = MotionVAE(feats, c["latent_dim"], c["layers"], c["heads"], c["ff"], c["dropout"],
-                                              max_len=max(512, self.window))  # fmt: skip
+                                              max_len=max(512, self.window), tokens=c["latent_tokens"])  # fmt: skip
         else:
             self.codec = DCTCodec(feats, rows(self.representation, self.window), c["dct_coeffs"], c["dct_log_std"])
-        dim = 2 * self.codec.latent_dim
+        dim = 2 * self.codec.code_dim
         if c["mapper"] == "inn":
             self.mapper: nn.Module = CouplingINN(dim, c["mapper_blocks"], c["mapper_hidden"], c["mapper_clamp"])
         elif c["mapper"] == "mlp":
@@ -149,8 +151,9 @@ class ReactionPrior(nn.Module):
         self.load_state_dict({**self.state_dict(), **part})
 
     @property
-    def latent_dim(self) -> int:
-        return self.codec.latent_dim
+    def code_dim(self) -> int:
+        """Numbers in a window's code (``mu``'s width): the VAE's tokens x latent_dim, or the DCT's coefficients."""
+        return self.codec.code_dim
 
     def rows(self, joints: torch.Tensor) -> torch.Tensor:
         """Canonical joints ``(B, L, 22, 3)`` metres -> the representation's rows ``(B, R, F)``, not normalised."""

@@ -1,15 +1,18 @@
 """The motion VAE of the reaction prior (paper §3.1), following MLD's ``mld_vae.py`` pattern.
 
-Encoder: each frame ``(B, L, F)`` is embedded to ``latent_dim``, two learned **distribution tokens**
-(MLD's ``global_motion_token`` of ``latent_size * 2`` tokens with ``latent_size = 1``) are put in front,
-sinusoidal positions are added, and a Transformer encoder runs over the ``L + 2`` tokens; the outputs
-at the two tokens are ``mu`` and ``logvar`` ``(B, latent_dim)``. Decoder: ``L`` queries that are the
-positional encodings alone attend to ``memory = z (B, 1, latent_dim)`` through a Transformer decoder,
-and a linear layer maps each to the ``F`` numbers of a frame.
+Encoder: each frame ``(B, L, F)`` is embedded to ``latent_dim``, ``2 * tokens`` learned **distribution
+tokens** (MLD's ``global_motion_token`` of ``latent_size * 2`` tokens; ``tokens`` is MLD's
+``latent_size``) are put in front, sinusoidal positions are added, and a Transformer encoder runs over
+the ``L + 2 * tokens`` tokens; the outputs at the first ``tokens`` are ``mu`` and at the next ``tokens``
+``logvar``, each flattened to ``(B, tokens * latent_dim)``, the code's ``code_dim`` numbers. Decoder: ``L``
+queries that are the frames' positional encodings alone attend to ``memory = z (B, tokens, latent_dim)``
+through a Transformer decoder, and a linear layer maps each to the ``F`` numbers of a frame.
 
-Sizes: the defaults of the spec (latent 64, 2 layers, 4 heads, feed-forward 128) are for a CPU; MLD
-and the paper's setting is latent 256, 9 layers, 4 heads, feed-forward 1024 (pass them as config
-overrides on a GPU).
+Sizes: the defaults of the spec (latent 64, 2 layers, 4 heads, feed-forward 128, one token) are for a
+CPU; MLD and the paper's setting is latent 256, 9 layers, 4 heads, feed-forward 1024, one token (pass
+them as config overrides on a GPU). MLD reports reconstruction improving with more tokens (its
+``latent_size`` ablation), at some cost to generation; more tokens cost little here, the window's
+frames outnumbering them.
 """
 
 from __future__ import annotations
@@ -33,16 +36,20 @@ def sinusoid(length: int, dim: int) -> torch.Tensor:
 class MotionVAE(nn.Module):
     """Transformer VAE of one person's motion window ``(B, L, feats)`` (normalised units).
 
-    :meth:`encode` -> ``(mu, logvar)`` each ``(B, latent_dim)``; :meth:`decode` ``(z, length)`` ->
-    ``(B, length, feats)``. ``max_len``: longest window the position table covers."""
+    :meth:`encode` -> ``(mu, logvar)`` each ``(B, code_dim)``, ``code_dim = tokens * latent_dim``;
+    :meth:`decode` ``(z, length)`` -> ``(B, length, feats)``. ``max_len``: longest window the position
+    table covers."""
 
     def __init__(self, feats: int, latent_dim: int = 64, layers: int = 2, heads: int = 4, ff: int = 128,
-                 dropout: float = 0.1, max_len: int = 512):  # fmt: skip
+                 dropout: float = 0.1, max_len: int = 512, tokens: int = 1):  # fmt: skip
         super().__init__()
-        self.feats, self.latent_dim = int(feats), int(latent_dim)
+        if int(tokens) < 1:
+            raise ValueError(f"the VAE needs at least one latent token, got {tokens!r}")
+        self.feats, self.latent_dim, self.tokens = int(feats), int(latent_dim), int(tokens)
+        self.code_dim = self.tokens * self.latent_dim
         self.embed = nn.Linear(feats, latent_dim)
-        self.dist_tokens = nn.Parameter(torch.randn(2, latent_dim) * 0.02)
-        self.register_buffer("pe", sinusoid(max_len + 2, latent_dim), persistent=False)
+        self.dist_tokens = nn.Parameter(torch.randn(2 * self.tokens, latent_dim) * 0.02)
+        self.register_buffer("pe", sinusoid(max_len + 2 * self.tokens, latent_dim), persistent=False)
         enc = nn.TransformerEncoderLayer(latent_dim, heads, ff, dropout, activation="gelu", batch_first=True,
                                          norm_first=True)  # fmt: skip
         self.encoder = nn.TransformerEncoder(enc, layers, norm=nn.LayerNorm(latent_dim), enable_nested_tensor=False)
@@ -53,18 +60,21 @@ class MotionVAE(nn.Module):
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         B, L, _ = x.shape
-        h = torch.cat([self.dist_tokens.expand(B, -1, -1), self.embed(x)], dim=1) + self.pe[: L + 2]
+        t = self.tokens
+        h = torch.cat([self.dist_tokens.expand(B, -1, -1), self.embed(x)], dim=1) + self.pe[: L + 2 * t]
         h = self.encoder(h)
-        return h[:, 0], h[:, 1].clamp(-20.0, 10.0)
+        return h[:, :t].reshape(B, self.code_dim), h[:, t : 2 * t].reshape(B, self.code_dim).clamp(-20.0, 10.0)
 
     def decode(self, z: torch.Tensor, length: int) -> torch.Tensor:
-        queries = self.pe[2 : length + 2].expand(z.shape[0], -1, -1)
-        return self.out(self.decoder(queries, z[:, None, :]))
+        t = self.tokens
+        queries = self.pe[2 * t : length + 2 * t].expand(z.shape[0], -1, -1)
+        return self.out(self.decoder(queries, z.reshape(z.shape[0], t, self.latent_dim)))
 
 
 class DCTCodec(nn.Module):
     """The "without motion VAE" ablation's fixed code: the first ``coeffs`` coefficients of an
-    orthonormal DCT-II along time of each of the ``feats`` numbers, so ``mu (B, feats * coeffs)``;
+    orthonormal DCT-II along time of each of the ``feats`` numbers, so ``mu (B, code_dim)``,
+    ``code_dim = feats * coeffs``;
     ``logvar`` is the constant ``log_std * 2`` (a fixed, not learned, spread; default unit deviation in
     normalised units, the scale a VAE's KL term pulls its codes to). :meth:`decode` is the
     inverse DCT of the kept coefficients (a low-pass projection). Nothing here is trained; it gives
@@ -73,7 +83,7 @@ class DCTCodec(nn.Module):
     def __init__(self, feats: int, length: int, coeffs: int = 8, log_std: float = 0.0):
         super().__init__()
         self.feats, self.length, self.coeffs = int(feats), int(length), int(min(coeffs, length))
-        self.latent_dim = self.feats * self.coeffs
+        self.code_dim = self.feats * self.coeffs
         self.log_std = float(log_std)
         n = torch.arange(length, dtype=torch.float64)
         k = torch.arange(self.coeffs, dtype=torch.float64)
