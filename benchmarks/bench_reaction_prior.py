@@ -175,7 +175,8 @@ def _train(job: tuple) -> dict:
         torch.set_num_threads(c["threads"])
     export, run = Path(c["export"]), Path(c["work"]) / f"{name}-s{seed}"
     t = time.perf_counter()
-    train("reaction-prior", export, run, config_overrides={**c["overrides"], **VARIANTS[name],
+    vae = c["vae_overrides"] if VARIANTS[name].get("use_vae", True) else {}  # the DCT code has no VAE to shape
+    train("reaction-prior", export, run, config_overrides={**c["overrides"], **vae, **VARIANTS[name],
                                                           **({"vae_from": str(Path(c["work"]) / f"full-s{seed}")} if shared else {})},
           steps_scale=c["steps_scale"], batch_size=c["batch_size"], seed=seed, device=c["device"],
           progress=False, split=c["train_split"])  # fmt: skip
@@ -234,6 +235,9 @@ def main() -> None:
                          "split at each variant's best (mean over seeds)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="config override for every variant")
+    ap.add_argument("--vae-set", action="append", default=[], metavar="KEY=JSON",
+                    help="config override for the variants with the motion VAE only (its size, tokens, steps): the "
+                         "ablation without it then keeps its runs")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default; 1 with --jobs)")
     ap.add_argument("--jobs", type=int, default=1, help="trainings at once, each in its own process")
     ap.add_argument("--own-vae", action="store_true",
@@ -250,6 +254,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-reaction-prior-"))
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    vae_overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.vae_set)}
     export = args.export
     if args.quick:
         sys.path.insert(0, str(ROOT))
@@ -266,7 +271,7 @@ def main() -> None:
     figures: dict = {"variants": {}, "runs": {}}
     t0 = time.perf_counter()
     jobs = [(name, seed) for name in variants for seed in range(args.seeds)]
-    common = {"export": str(export), "work": str(work), "overrides": overrides, "window": window,
+    common = {"export": str(export), "work": str(work), "overrides": overrides, "vae_overrides": vae_overrides, "window": window,
               "steps_scale": args.steps_scale, "batch_size": args.batch_size, "device": args.device,
               "iterations": args.iterations, "lambda_prior": args.lambda_prior,
               "threads": args.threads if args.jobs == 1 else max(1, args.threads)}  # fmt: skip
@@ -340,7 +345,8 @@ def main() -> None:
                                [row(n, [f"validation.{_lam_key(lam)}" for lam in lambdas]) for n in variants]))  # fmt: skip
     notes = ("--quick: tiny export and model; the figures check the script, they measure nothing."
              if args.quick else "")  # fmt: skip
-    path = write_results("reaction_prior", figures, params={**vars(args), "overrides": overrides}, goals=goals,
+    path = write_results(args.out.stem if args.out else "reaction_prior", figures,
+                         params={**vars(args), "overrides": overrides, "vae_overrides": vae_overrides}, goals=goals,
                          tables=tables, notes=notes, out=args.out)  # fmt: skip
     print(path)
 

@@ -95,6 +95,10 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
     ("probe_fit_rules", "benchmarks/probes/probe_fit_rules.py --inputs HUG.npz --runs 2",
      "on an otherwise idle machine (12 fits of half a minute: about 20 minutes on 2 cores); HUG.npz from "
      "`bench_fit.py --minutes 1 --save-inputs HUG.npz --runs 0`"),
+    ("probe_prior_code", "benchmarks/probes/probe_prior_code.py --export RP/export-r64 --work RP/codes --jobs 2 "
+     "--vae 64x2,64x2t4,64x2t8,128x2,64x2@6000",
+     "with RP/export-r64 the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     "about an hour on 2 cores"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),

@@ -10,9 +10,8 @@ through a Transformer decoder, and a linear layer maps each to the ``F`` numbers
 
 Sizes: the defaults of the spec (latent 64, 2 layers, 4 heads, feed-forward 128, one token) are for a
 CPU; MLD and the paper's setting is latent 256, 9 layers, 4 heads, feed-forward 1024, one token (pass
-them as config overrides on a GPU). MLD reports reconstruction improving with more tokens (its
-``latent_size`` ablation), at some cost to generation; more tokens cost little here, the window's
-frames outnumbering them.
+them as config overrides on a GPU). More tokens cost little compute, the window's frames
+outnumbering them; ``benchmarks/probes/probe_prior_code.py`` measures what they describe.
 """
 
 from __future__ import annotations
