@@ -116,6 +116,7 @@ def main() -> None:
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     jobs = [(_code_name("vae", v), parse_vae(v)) for v in args.vae.split(",") if v]
     jobs += [(_code_name("dct", d), {"use_vae": False, "dct_coeffs": int(d)}) for d in args.dct.split(",") if d]
+    given = [n for n, _ in jobs]  # the table's order
     # longest first, so the pool's processes end together
     jobs.sort(key=lambda j: -(j[1].get("latent_dim", 0) ** 2 * j[1].get("layers", 0) * j[1].get("vae_steps", 2000)))
     c = {"export": str(args.export), "work": str(args.work), "overrides": overrides, "split": args.split,
@@ -132,7 +133,7 @@ def main() -> None:
     figures = {"codes": recs, "seconds": time.perf_counter() - t0}
     rows = [[n, f"codes.{n}.code_size", f"codes.{n}.vae_steps", f"codes.{n}.recon.mpjpe_mm", f"codes.{n}.recon.pa_mpjpe_mm",
              f"codes.{n}.recon.translation_mm", f"codes.{n}.projection.mpjpe_mm", f"codes.{n}.projection.pa_mpjpe_mm"]
-            for n, _ in sorted(jobs)]  # fmt: skip
+            for n in given]  # fmt: skip
     name = (args.out.stem if args.out else "probe_prior_code")
     path = write_results(name, figures, params=vars(args), out=args.out, tables=[Table(
         f"What each code can describe, on the {args.split} split's reactors (mm)",
