@@ -1,6 +1,6 @@
 """Probe: how well the reaction prior's motion code can describe a reaction, by its kind, size and schedule.
 
-    .venv/bin/python benchmarks/probes/probe_prior_code.py --export RP/export --work RP/codes --jobs 2
+    .venv/bin/python benchmarks/probes/probe_prior_code.py --export RP/export-r64 --work RP/codes --jobs 2
 
 Refinement with the prior (``reaction_prior/refine.py``) optimises a window's code and gives back its
 decoding, so no refined reaction is closer to the truth than the closest motion the code can decode
@@ -39,7 +39,7 @@ from results_file import Table, write_results  # noqa: E402
 
 #: ``--vae`` items: ``<latent>x<layers>`` with the feed-forward width twice the latent (MLD's ratio is 4;
 #: 2 is the CPU default's), optionally ``t<tokens>`` (``latent_tokens``, MLD's latent_size) and ``@<vae_steps>``.
-DEFAULT_VAES = "64x2,64x2@8000,128x2,128x2@6000,256x2"
+DEFAULT_VAES = "64x2,64x2t4,64x2t8,128x2,64x2@6000"
 DEFAULT_DCTS = "1,2,4,8,16"
 
 
@@ -104,7 +104,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--export", type=Path, required=True, help="a dataset export with a train split (fit/validation)")
     ap.add_argument("--work", type=Path, required=True, help="folder of the probe's runs (a finished run is kept)")
-    ap.add_argument("--vae", default=DEFAULT_VAES, help=f"VAEs: <latent>x<layers>[t<tokens>][@<vae_steps>], comma-separated (default {DEFAULT_VAES})")
+    ap.add_argument("--vae", default=DEFAULT_VAES,
+                    help=f"VAEs: <latent>x<layers>[t<tokens>][@<vae_steps>], comma-separated (default {DEFAULT_VAES})")
     ap.add_argument("--dct", default=DEFAULT_DCTS, help=f"DCT codes: coefficients kept per coordinate (default {DEFAULT_DCTS})")
     ap.add_argument("--split", default="validation", choices=("validation", "fit"), help="the reactors scored")
     ap.add_argument("--iterations", type=int, default=100, help="refinement steps per window (the benchmark's)")
