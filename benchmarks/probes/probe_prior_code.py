@@ -89,8 +89,7 @@ def _train_and_score(job: tuple) -> dict:
     proj = _refinement(module, seqs, module.config, window, c["iterations"], 0.0, "cpu")
     vae = summary.get("phases", {}).get("vae", {})
     out = {"code_size": int(module.code_dim),
-           "recon": {"mpjpe_mm": metrics.mpjpe(rec, t), "pa_mpjpe_mm": metrics.pa_mpjpe(rec, t),
-                     "translation_mm": metrics.translation_error(rec, t)},
+           "recon": metrics.pose_errors(rec, t),
            "projection": {"before_mpjpe_mm": proj["before"]["mpjpe_mm"], "mpjpe_mm": proj["after"]["mpjpe_mm"],
                           "pa_mpjpe_mm": proj["after"]["pa_mpjpe_mm"], "translation_mm": proj["after"]["translation_mm"]},
            "vae_steps": vae.get("steps"), "vae_final_l1": (vae.get("final") or {}).get("l1"),
