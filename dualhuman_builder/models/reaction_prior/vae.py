@@ -9,8 +9,8 @@ queries that are the frames' positional encodings alone attend to ``memory = z (
 through a Transformer decoder, and a linear layer maps each to the ``F`` numbers of a frame.
 
 Sizes: the defaults of the spec (latent 64, 2 layers, 4 heads, feed-forward 128, one token) are for a
-CPU; MLD and the paper's setting is latent 256, 9 layers, 4 heads, feed-forward 1024, one token (pass
-them as config overrides on a GPU). More tokens cost little compute, the window's frames
+CPU; MLD's setting, which the paper follows, is latent 256, 9 layers, 4 heads, feed-forward 1024, one
+token (pass them as config overrides on a GPU). More tokens cost little compute, the window's frames
 outnumbering them; ``benchmarks/probes/probe_prior_code.py`` measures what they describe.
 """
 
