@@ -99,6 +99,16 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "--vae 64x2,64x2t4,64x2t8,128x2,64x2@6000",
      "with RP/export-r64 the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
      "about an hour on 2 cores"),
+    ("reaction_prior", "benchmarks/bench_reaction_prior.py --export RP/export --seeds 3 --jobs 2 --work RP/runs "
+     "--choose-lambda 0.01,0.1,1,10,100,1000 --set inn_steps=5400 --vae-set vae_steps=2000 "
+     "--variants full,no_vae,mlp,no_noise,features",
+     "with RP/export the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     "several hours on 2 cores"),
+    ("reaction_prior_vae6000", "benchmarks/bench_reaction_prior.py --export RP/export --seeds 3 --jobs 2 --work RP/v6 "
+     "--choose-lambda 0.01,0.1,1,10,100,1000 --set inn_steps=5400 --vae-set vae_steps=6000 "
+     "--variants full,no_vae,mlp,no_noise --out benchmarks/results/reaction_prior_vae6000.json",
+     "with RP/export the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     "about two hours on 2 cores"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
      "with checkouts of EricGuo5513/HumanML3D and tr3e/InterGen"),
