@@ -21,7 +21,7 @@ written once with `refine_export` and checked with `export verify`.
 
     python benchmarks/bench_reaction_prior.py --export WS/export --seeds 3          # the experiment
     python benchmarks/bench_reaction_prior.py --export WS/export --choose-lambda 0.01,0.1,1,10,100,1000
-    python benchmarks/bench_reaction_prior.py --export WS/export --vae-set vae_steps=6000  # another VAE schedule
+    python benchmarks/bench_reaction_prior.py --export WS/export --vae-set vae_steps=2000  # another VAE schedule
     python benchmarks/bench_reaction_prior.py --quick --out /tmp/rp.json            # a tiny check
 """
 

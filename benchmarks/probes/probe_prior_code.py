@@ -7,7 +7,8 @@ decoding, so no refined reaction is closer to the truth than the closest motion 
 to. The reaction-prior benchmark found the "without motion VAE" ablation, a fixed low-frequency DCT of
 each coordinate, refining better than the full model; this probe measures that floor for each code
 without the generator: the motion VAE at several widths and training lengths (``--vae``), and the DCT
-at several numbers of coefficients (``--dct``). Each VAE trains its ``vae`` phase only, on the ``fit``
+at several numbers of coefficients (``--dct``); a VAE item without ``@steps`` trains the model's default
+schedule (``vae_steps``). Each VAE trains its ``vae`` phase only, on the ``fit``
 split, seed 0 (``--set`` overrides the rest of the config, as the benchmark's ``--set`` does). Per code,
 on the reactors of a split (``--split``, default ``validation``: people the codes never saw; ``fit``:
 the training windows themselves):
@@ -35,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: results_file, bench_reaction_prior
 
 from bench_reaction_prior import _refinement, _test_sequences  # noqa: E402
+from dualhuman_builder.models.reaction_prior.spec import DEFAULTS  # noqa: E402
 from results_file import Table, write_results  # noqa: E402
 
 #: ``--vae`` items: ``<latent>x<layers>`` with the feed-forward width twice the latent (MLD's ratio is 4;
@@ -118,7 +120,7 @@ def main() -> None:
     jobs += [(_code_name("dct", d), {"use_vae": False, "dct_coeffs": int(d)}) for d in args.dct.split(",") if d]
     given = [n for n, _ in jobs]  # the table's order
     # longest first, so the pool's processes end together
-    jobs.sort(key=lambda j: -(j[1].get("latent_dim", 0) ** 2 * j[1].get("layers", 0) * j[1].get("vae_steps", 2000)))
+    jobs.sort(key=lambda j: -(j[1].get("latent_dim", 0) ** 2 * j[1].get("layers", 0) * j[1].get("vae_steps", DEFAULTS["vae_steps"])))
     c = {"export": str(args.export), "work": str(args.work), "overrides": overrides, "split": args.split,
          "iterations": args.iterations, "threads": 1 if args.jobs > 1 else 0}  # fmt: skip
     t0 = time.perf_counter()

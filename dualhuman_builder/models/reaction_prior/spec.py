@@ -51,7 +51,8 @@ NAME = "reaction-prior"
 
 #: Defaults sized for a CPU. The paper / MLD setting for a GPU: latent_dim 256, layers 9, ff 1024,
 #: vae_steps and inn_steps for 4000 and 500 epochs of the data (paper §3.5). The generator's 5000 steps
-#: of 32 windows are about the paper's 500 epochs for a few hundred sequences.
+#: of 32 windows are about the paper's 500 epochs for a few hundred sequences. The VAE's 6000 steps: its
+#: training length is what limits refinement at this size (``benchmarks/probes/probe_prior_code.py``).
 DEFAULTS: dict[str, Any] = {
     "window": 64,
     "representation": "joints",
@@ -74,7 +75,7 @@ DEFAULTS: dict[str, Any] = {
     "noise_augment": True,
     "noise": NoiseModel().as_dict(),
     "stats_batches": 16,
-    "vae_steps": 2000,
+    "vae_steps": 6000,
     "inn_steps": 5000,
     "lr": 1e-4,
     "weight_decay": 5e-4,
