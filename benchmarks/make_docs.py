@@ -36,6 +36,9 @@ RESULTS = ROOT / "benchmarks" / "results"
 DOCS = ROOT / "docs"
 RUN = ".venv/bin/python"
 
+#: Where the reaction prior's experiments read their data from, for ``EXPECTED``'s entries.
+RP_DATASET = "the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset))"
+
 #: The results files the docs expect, in the order they appear: (name, command that writes it from
 #: the repository root, where it must run). Probes are the ``probe_*`` names. A script under
 #: ``benchmarks/`` or ``benchmarks/probes/`` that no entry runs is expected too (``expected()``).
@@ -97,17 +100,17 @@ EXPECTED: tuple[tuple[str, str, str], ...] = (
      "`bench_fit.py --minutes 1 --save-inputs HUG.npz --runs 0`"),
     ("probe_prior_code", "benchmarks/probes/probe_prior_code.py --export RP/export-r64 --work RP/codes --jobs 2 "
      "--vae 64x2,64x2t4,64x2t8,128x2,64x2@6000",
-     "with RP/export-r64 the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     f"with RP/export-r64 {RP_DATASET}; "
      "about an hour on 2 cores"),
     ("reaction_prior", "benchmarks/bench_reaction_prior.py --export RP/export --seeds 3 --jobs 2 --work RP/runs "
      "--choose-lambda 0.01,0.1,1,10,100,1000 --set inn_steps=5400 --vae-set vae_steps=2000 "
      "--variants full,no_vae,mlp,no_noise,features",
-     "with RP/export the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     f"with RP/export {RP_DATASET}; "
      "several hours on 2 cores"),
     ("reaction_prior_vae6000", "benchmarks/bench_reaction_prior.py --export RP/export --seeds 3 --jobs 2 --work RP/v6 "
      "--choose-lambda 0.01,0.1,1,10,100,1000 --set inn_steps=5400 --vae-set vae_steps=6000 "
      "--variants full,no_vae,mlp,no_noise --out benchmarks/results/reaction_prior_vae6000.json",
-     "with RP/export the reaction prior's dataset ([models guide](guides/models.md#the-reaction-prior-on-a-synthetic-dataset)); "
+     f"with RP/export {RP_DATASET}; "
      "about two hours on 2 cores"),
     ("probe_interchange_upstream",
      "benchmarks/probes/probe_interchange_upstream.py --humanml3d HUMANML3D --intergen INTERGEN",
